@@ -1,0 +1,88 @@
+"""`interreal` command line: one subcommand per stage, each owned by its module.
+
+A stage module exposes `add_arguments(parser)` and `main(args) -> int`. Modules are imported only for the
+subcommand that runs, so `interreal validate` does not pay for torch or pycolmap imports.
+Expected failures (`InterRealError`) print one line and exit non-zero, without a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import Callable, Sequence
+
+from .errors import InterRealError
+
+PROG = "interreal"
+# name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "synth": ("interreal.synth.cli", "simulate a phone capture of an articulated room, with full ground truth"),
+    "frames": ("interreal.frames", "video / image folder / RAW folder -> DS/images (sharpest frame per window)"),
+    "masks": ("interreal.masks", "propagate keyframe masks to every frame -> DS/masks"),
+    "poses": ("interreal.sfm", "pycolmap SfM on DS/images (object pixels masked out) -> transforms.json"),
+    "process": ("interreal.process", "frames -> masks -> poses -> labels in one go"),
+    "label": ("interreal.labels", "set / unset / list / import keyframe state labels"),
+    "annotate": ("interreal.annotate", "local web app: draw keyframe masks, set states, run propagation"),
+    "validate": ("interreal.dataset", "is this a loadable LiveScene dataset? exit 0 / the full list of problems"),
+    "demo": ("interreal.demo", "the whole job on a simulated capture (or your video), end to end"),
+}
+
+EPILOG = """examples:
+  interreal demo                               # everything, on a simulated capture
+  interreal synth out/cap --frames 120         # a simulated phone capture with truth
+  interreal process out/cap/video.mp4 out/ds --keyframes out/cap/annotations/keyframes \\
+      --labels out/cap/annotations/states.yaml
+  interreal validate out/ds
+Run `interreal COMMAND --help` for each command's options and examples."""
+
+
+def run_cli(prog: str, commands: dict[str, tuple[str, str]], epilog: str, argv: Sequence[str] | None,
+            error_types: tuple[type[BaseException], ...]) -> int:
+    """Shared driver for both packages' entry points."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    top = argparse.ArgumentParser(prog=prog, epilog=epilog, formatter_class=argparse.RawDescriptionHelpFormatter)
+    top.add_argument("--version", action="store_true", help="print the version and exit")
+    sub = top.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_, helptext) in commands.items():
+        sub.add_parser(name, help=helptext)
+    if not argv or argv[0] in ("-h", "--help"):
+        top.print_help()
+        return 0 if argv else 2
+    if argv[0] == "--version":
+        from . import __version__
+
+        print(f"{prog} {__version__}")
+        return 0
+    name = argv[0]
+    if name not in commands:
+        top.error(f"unknown command {name!r}; choose from {', '.join(commands)}")
+    module_name, helptext = commands[name]
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        if exc.name and exc.name.startswith(module_name.split(".")[0]):
+            print(f"{prog} {name}: not available in this build ({exc})", file=sys.stderr)
+            return 2
+        raise
+    parser = argparse.ArgumentParser(prog=f"{prog} {name}", description=helptext,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    module.add_arguments(parser)
+    args = parser.parse_args(argv[1:])
+    main_fn: Callable[[argparse.Namespace], int] = module.main
+    try:
+        return int(main_fn(args) or 0)
+    except error_types as exc:
+        print(f"{prog} {name}: error: {exc}", file=sys.stderr)
+        return int(getattr(exc, "exit_code", 2))
+    except KeyboardInterrupt:
+        print(f"{prog} {name}: interrupted", file=sys.stderr)
+        return 130
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return run_cli(PROG, COMMANDS, EPILOG, argv, (InterRealError,))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

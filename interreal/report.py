@@ -1,0 +1,105 @@
+"""Stage reports: `DS/reports/<stage>.json` with inputs, settings, wall time per step, figures and warnings.
+
+A report is written with status "running" before the stage touches the dataset and "ok" only at the end,
+so `interreal validate` can refuse a dataset whose last stage crashed half-way.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import platform
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator
+
+from . import atomic
+from .conventions import REPORTS_DIR
+
+
+def report_path(root: str | Path, stage: str) -> Path:
+    return Path(root) / REPORTS_DIR / f"{stage}.json"
+
+
+def read_report(root: str | Path, stage: str) -> dict[str, Any] | None:
+    path = report_path(root, stage)
+    if not path.exists():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def fingerprint(*parts: Any) -> str:
+    """Stable hash of settings/inputs, used to decide whether a finished step can be reused."""
+    blob = json.dumps(parts, sort_keys=True, default=str).encode()
+    return hashlib.sha1(blob).hexdigest()[:16]
+
+
+class StageReport:
+    """Collects what a stage did; use as a context manager around the stage's work.
+
+    >>> with StageReport(ds, "poses", settings={...}) as rep:
+    ...     with rep.step("extract"):
+    ...         ...
+    ...     rep.figures["registered"] = 50
+    ...     rep.warn("frames 120-160 did not register", cause="texture")
+    """
+
+    def __init__(self, root: str | Path, stage: str, inputs: dict | None = None, settings: dict | None = None):
+        self.root = Path(root)
+        self.stage = stage
+        self.data: dict[str, Any] = {
+            "stage": stage,
+            "status": "running",
+            "started": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "inputs": inputs or {},
+            "settings": settings or {},
+            "steps": {},
+            "figures": {},
+            "warnings": [],
+            "host": {"python": sys.version.split()[0], "platform": platform.platform()},
+        }
+        self._t0 = time.perf_counter()
+
+    @property
+    def figures(self) -> dict[str, Any]:
+        return self.data["figures"]
+
+    @property
+    def steps(self) -> dict[str, Any]:
+        return self.data["steps"]
+
+    def warn(self, message: str, cause: str | None = None, **extra: Any) -> None:
+        entry = {"message": message, "cause": cause, **extra}
+        self.data["warnings"].append(entry)
+
+    @contextmanager
+    def step(self, name: str) -> Iterator[dict[str, Any]]:
+        info: dict[str, Any] = {}
+        t0 = time.perf_counter()
+        try:
+            yield info
+        finally:
+            info["wall_s"] = round(time.perf_counter() - t0, 4)
+            self.data["steps"][name] = info
+
+    def write(self) -> None:
+        atomic.write_json(report_path(self.root, self.stage), self.data)
+
+    def __enter__(self) -> "StageReport":
+        self.write()
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.data["wall_s"] = round(time.perf_counter() - self._t0, 3)
+        if exc is None:
+            self.data["status"] = "ok"
+        else:
+            self.data["status"] = "failed"
+            self.data["error"] = f"{exc_type.__name__}: {exc}"
+        self.write()

@@ -687,9 +687,21 @@ def format_summary(result: ValidationResult) -> str:
     return "\n".join(lines)
 
 
-def format_problems(result: ValidationResult) -> str:
-    lines = [f"{result.root}: {len(result.problems)} problem(s)"]
-    lines += [f"  {p}" for p in result.problems]
+def format_problems(result: ValidationResult, per_kind: int = 0) -> str:
+    """Every problem (or the first `per_kind` of each kind), after a count per kind."""
+    counts: dict[str, int] = {}
+    for p in result.problems:
+        counts[p.kind] = counts.get(p.kind, 0) + 1
+    lines = [f"{result.root}: {len(result.problems)} problem(s): "
+             + ", ".join(f"{n} {k}" for k, n in counts.items())]
+    shown: dict[str, int] = {}
+    for p in result.problems:
+        shown[p.kind] = shown.get(p.kind, 0) + 1
+        if per_kind and shown[p.kind] > per_kind:
+            if shown[p.kind] == per_kind + 1:
+                lines.append(f"  ... and {counts[p.kind] - per_kind} more [{p.kind}] (without --brief: all of them)")
+            continue
+        lines.append(f"  {p}")
     return "\n".join(lines)
 
 
@@ -700,7 +712,9 @@ def add_arguments(p) -> None:
     p.add_argument("dataset", type=Path, help="dataset folder")
     p.add_argument("--no-masks", action="store_true", help="skip the (slow) per-pixel mask checks")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
-    p.epilog = "examples:\n  interreal validate out/room\n  interreal validate out/room --json | jq .problems"
+    p.add_argument("--brief", action="store_true", help="list only the first 10 problems of each kind")
+    p.epilog = ("examples:\n  interreal validate out/room\n  interreal validate out/room --brief\n"
+                "  interreal validate out/room --json | jq .problems")
 
 
 def main(args) -> int:
@@ -711,5 +725,5 @@ def main(args) -> int:
     elif result.ok:
         print(format_summary(result))
     else:
-        print(format_problems(result))
+        print(format_problems(result, per_kind=10 if args.brief else 0))
     return 0 if result.ok else 1

@@ -1,0 +1,51 @@
+"""`interreal annotate DS`: a local web app to draw keyframe masks, set keyframe states and run propagation.
+
+The page is plain HTML/JS shipped in `static/` (no CDN, no build step); the server is `server.py`
+(FastAPI + uvicorn, token + Host checks); every edit goes through `store.py` (atomic, merge-safe).
+Keyframe masks are stored as index PNGs in DS/keyframes/<fid>.png + DS/keyframes/mapping.yaml, which is the
+`interreal masks DS --keyframes DIR` input format.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import InputError
+
+__all__ = ["add_arguments", "main"]
+
+
+def add_arguments(p) -> None:
+    p.add_argument("dataset", type=Path, help="dataset folder (frames in DS/images)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default 127.0.0.1: only this machine can connect)")
+    p.add_argument("--port", type=int, default=0, help="port (default 0: any free port)")
+    p.add_argument("--open", action="store_true", help="open the page in the default browser")
+    p.epilog = """examples:
+  interreal annotate out/ds                 # prints http://127.0.0.1:PORT/?token=... ; open it in a browser
+  interreal annotate out/ds --port 8765 --open
+keys on the page: left/right = previous/next frame, p = polygon, b = box, e = erase/paint,
+enter / double-click = close the polygon, escape = cancel the shape, 1-9 = choose object"""
+
+
+def main(args) -> int:
+    from .server import AnnotateServer
+
+    ds: Path = args.dataset
+    if not ds.is_dir():
+        raise InputError(f"{ds} is not a folder: give the dataset folder (with images/ inside)")
+    if not (0 <= args.port < 65536):
+        raise InputError(f"--port {args.port}: use 0 (any free port) or 1..65535")
+    try:
+        server = AnnotateServer(ds, host=args.host, port=args.port)
+    except OSError as exc:
+        raise InputError(f"cannot listen on {args.host}:{args.port} ({exc}); choose another --port") from None
+    if args.host not in ("127.0.0.1", "localhost", "::1"):
+        print(f"warning: listening on {args.host}: other machines can reach the app (they still need the token)")
+    print(f"annotating {ds.resolve()}\nopen {server.url}\n(ctrl-c to stop; every edit is saved at once)", flush=True)
+    if args.open:
+        import webbrowser
+
+        webbrowser.open(server.url)
+    server.serve_forever()
+    return 0

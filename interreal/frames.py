@@ -1,0 +1,281 @@
+"""Frame selection: `interreal frames INPUT DS` -> DS/images/frame_<source index>.png.
+
+Why not ns-process-data's ffmpeg `thumbnail` filter: it picks by histogram, so blurred frames survive and a camera
+that stands still yields runs of identical frames. Here one cheap analysis pass (at <= 640 px) scores each frame's
+sharpness (variance of the Laplacian), texture (FAST corners) and motion from the previous frame (DIS optical flow on
+160 px thumbnails). Windows are cut by *cumulative motion* (plus a little time, so a static shot still yields frames),
+the sharpest usable frame of each window is taken, and a frame that barely moved from the last kept one is dropped.
+A second pass decodes only the chosen frames at the working size (long side <= 1600 by default).
+
+Image folders keep every image (index = position in name order) unless a target or spacing is given.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import cv2
+import numpy as np
+
+from . import atomic
+from .conventions import IMAGES_DIR, frame_name
+from .errors import InputError
+from .ingest import Source, open_source
+from .report import StageReport
+
+DEFAULT_VIDEO_TARGET = 300  # ns-process-data's default, so datasets are comparable
+
+
+@dataclass
+class FrameStats:
+    """Per source frame, from the analysis pass."""
+
+    sharpness: np.ndarray  # variance of the Laplacian at the analysis size
+    corners: np.ndarray  # FAST corner count
+    brightness: np.ndarray  # mean grey level
+    motion: np.ndarray  # median flow from the previous frame, fraction of the image width (0 for the first)
+
+    @property
+    def usable(self) -> np.ndarray:
+        """Not black, not blank, with texture a feature detector can use."""
+        return (self.brightness > 8) & (self.corners >= 25) & (self.sharpness > 2.0)
+
+
+@dataclass
+class SelectConfig:
+    target: int | None = None  # number of frames wanted
+    every: int | None = None  # or: one frame per `every` source frames
+    keep_all: bool = False  # image folders: every usable image
+    min_motion: float = 0.0003  # drop a frame that moved less than this (fraction of width) since the last kept one:
+    # a camera at rest (0.2 px at 640 px); slow pans (the simulator moves ~1 px per frame) keep every frame
+    time_weight: float = 0.25  # share of the window budget spread by time rather than motion
+
+
+ANALYSIS_SIDE = 640
+THUMB_W = 160
+
+
+def analyse(source: Source, progress: bool = True) -> tuple[list[int], FrameStats]:
+    """One pass over the source at <= 640 px: sharpness, texture, brightness and motion per frame."""
+    fast = cv2.FastFeatureDetector_create(threshold=20)
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST)
+    idx, sharp, corners, bright, motion = [], [], [], [], []
+    prev = None
+    for i, rgb in source.frames(long_side=ANALYSIS_SIDE, progress="analyse" if progress else None):
+        grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+        idx.append(i)
+        sharp.append(float(cv2.Laplacian(grey, cv2.CV_32F).var()))
+        corners.append(len(fast.detect(grey)))
+        bright.append(float(grey.mean()))
+        th = max(8, round(grey.shape[0] * THUMB_W / grey.shape[1]))
+        thumb = cv2.resize(grey, (THUMB_W, th), interpolation=cv2.INTER_AREA)
+        if prev is None:
+            motion.append(0.0)
+        else:
+            flow = dis.calc(prev, thumb, None)
+            motion.append(float(np.median(np.linalg.norm(flow, axis=2))) / THUMB_W)
+        prev = thumb
+    stats = FrameStats(*(np.asarray(a, dtype=np.float64) for a in (sharp, corners, bright, motion)))
+    return idx, stats
+
+
+def select(indices: Sequence[int], stats: FrameStats, cfg: SelectConfig,
+           keep: Iterable[int] = ()) -> tuple[list[int], dict]:
+    """Chosen source indices (sorted) and what was dropped, why."""
+    indices = np.asarray(indices)
+    n = len(indices)
+    usable = stats.usable
+    keep = sorted(set(int(k) for k in keep))
+    missing = [k for k in keep if k not in set(indices.tolist())]
+    if missing:
+        raise InputError(f"frames {missing[:10]} are named by --keyframes/--labels but the source has only "
+                         f"{n} frames (0-{n - 1}); check that the annotations belong to this capture")
+    info: dict = {"unusable": indices[~usable].tolist(), "near_duplicates": []}
+    if cfg.keep_all and not cfg.target and not cfg.every:
+        chosen = set(indices[usable].tolist())
+        return sorted(chosen | set(keep)), info
+    if cfg.every:
+        n_win = int(np.ceil(n / cfg.every))
+        edges = np.minimum(np.arange(n_win + 1) * cfg.every, n)
+    else:
+        target = min(int(cfg.target or DEFAULT_VIDEO_TARGET), n)
+        # windows of equal "progress": motion, plus a share of time so static shots still get frames
+        m = stats.motion.copy()
+        m_total = m.sum()
+        t = np.full(n, 1.0 / n)
+        prog = (1 - cfg.time_weight) * (m / m_total if m_total > 0 else t) + cfg.time_weight * t
+        if m_total <= 0:
+            prog = t
+        cum = np.concatenate([[0.0], np.cumsum(prog)])
+        cum /= cum[-1]
+        edges = np.searchsorted(cum, np.linspace(0, 1, target + 1), side="left")
+        edges[0], edges[-1] = 0, n
+        # every window non-empty, so the target is met whenever the source has enough frames
+        for k in range(1, target):
+            edges[k] = min(max(edges[k], edges[k - 1] + 1), n - (target - k))
+    chosen: list[int] = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        if b <= a:
+            continue
+        win = np.arange(a, b)
+        win = win[usable[win]]
+        if win.size:
+            chosen.append(int(win[np.argmax(stats.sharpness[win])]))
+    # near-duplicates: cumulative motion since the last kept frame below min_motion (only when windows are by
+    # count/spacing, i.e. video); keep-frames are never dropped
+    cum_m = np.cumsum(stats.motion)
+    kept: list[int] = []
+    for pos in chosen:
+        if kept and not cfg.keep_all and cum_m[pos] - cum_m[kept[-1]] < cfg.min_motion:
+            info["near_duplicates"].append(int(indices[pos]))
+            continue
+        kept.append(pos)
+    out = sorted(set(indices[kept].tolist()) | set(keep))
+    return out, info
+
+
+def _is_folder_source(source: Source) -> bool:
+    return source.info.kind in ("images", "raw")
+
+
+def extract_frames(source: str | Path, ds: str | Path, *, target: int | None = None, every: int | None = None,
+                   long_side: int = 1600, keep: Iterable[int] = (), report: bool = True) -> list[Path]:
+    """Select frames from a video / image folder / RAW folder and write DS/images/frame_<index>.png.
+
+    The new images/ folder is built beside the old one and swapped in at the end, so a failed run leaves the
+    dataset as it was. Returns the written image paths in index order.
+    """
+    ds = Path(ds)
+    if target is not None and target < 3:
+        raise InputError(f"--target {target}: at least 3 frames are needed for poses")
+    if every is not None and every < 1:
+        raise InputError(f"--every {every} must be >= 1")
+    keep = sorted(set(int(k) for k in keep))
+    settings = {"target": target, "every": every, "long_side": long_side, "keep": keep}
+    ds.mkdir(parents=True, exist_ok=True)
+    rep = StageReport(ds, "frames", inputs={"source": str(source)}, settings=settings) if report else None
+    ctx = rep if rep is not None else _Null()
+    with ctx:
+        t0 = time.perf_counter()
+        src = open_source(source)
+        cfg = SelectConfig(target=target, every=every, keep_all=_is_folder_source(src))
+        with _step(rep, "analyse") as st:
+            indices, stats = analyse(src)
+            st["frames"] = len(indices)
+        n_usable = int(stats.usable.sum())
+        if n_usable < 3:
+            why = _unusable_reason(stats)
+            raise InputError(f"{source}: only {n_usable} of {len(indices)} frames are usable ({why}); "
+                             "at least 3 sharp, textured, exposed frames are needed")
+        chosen, info = select(indices, stats, cfg, keep)
+        if len(chosen) < 3:
+            raise InputError(f"{source}: only {len(chosen)} frames survive selection; film more of the scene "
+                             "or lower --every")
+        out_dir = ds / IMAGES_DIR
+        stage = ds / f".{IMAGES_DIR}.partial"
+        shutil.rmtree(stage, ignore_errors=True)
+        stage.mkdir(parents=True)
+        written: list[Path] = []
+        size = None
+        with _step(rep, "write") as st:
+            for i, rgb in src.frames(indices=chosen, long_side=long_side, progress="frames"):
+                name = frame_name(i) + ".png"
+                atomic.write_image(stage / name, rgb)
+                written.append(out_dir / name)
+                size = (rgb.shape[1], rgb.shape[0])
+            st["frames"] = len(written)
+        _swap_dir(stage, out_dir)
+        if rep is not None:
+            pos = {int(i): k for k, i in enumerate(indices)}
+            sel = [pos[i] for i in chosen]
+            rep.data["inputs"]["source_info"] = asdict(src.info)
+            rep.figures.update({
+                "source_frames": len(indices), "usable": n_usable, "selected": len(chosen), "size": list(size or ()),
+                "sharpness_median_selected": float(np.median(stats.sharpness[sel])),
+                "sharpness_median_all": float(np.median(stats.sharpness)),
+                "motion_total_widths": float(stats.motion.sum()),
+                "selected_indices": chosen,
+                "unusable_indices": info["unusable"], "near_duplicates_dropped": info["near_duplicates"],
+            })
+            if src.info.names:
+                rep.figures["source_names"] = {frame_name(i): src.info.names[i] for i in chosen}
+            if info["unusable"]:
+                rep.warn(f"{len(info['unusable'])} frames are black, blank or textureless and were skipped "
+                         f"(e.g. {_ranges(info['unusable'])})", cause="texture/exposure")
+            rep.data["wall_s_total"] = round(time.perf_counter() - t0, 3)
+    return written
+
+
+def _swap_dir(new: Path, dest: Path) -> None:
+    """Replace `dest` by `new` with renames only (the old folder goes away after the swap)."""
+    old = dest.with_name(f".{dest.name}.old")
+    shutil.rmtree(old, ignore_errors=True)
+    if dest.exists():
+        dest.rename(old)
+    new.rename(dest)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _unusable_reason(stats: FrameStats) -> str:
+    if np.all(stats.brightness <= 8):
+        return "the frames are black"
+    if np.median(stats.corners) < 25:
+        return "the frames are blank or textureless"
+    return "the frames are black, blank or blurred"
+
+
+def _ranges(ids: Sequence[int], limit: int = 6) -> str:
+    """[1,2,3,7,9,10] -> '1-3, 7, 9-10'."""
+    out, ids = [], sorted(ids)
+    start = prev = ids[0]
+    for v in list(ids[1:]) + [None]:
+        if v is not None and v == prev + 1:
+            prev = v
+            continue
+        out.append(f"{start}-{prev}" if prev != start else f"{start}")
+        if v is not None:
+            start = prev = v
+    return ", ".join(out[:limit]) + (", ..." if len(out) > limit else "")
+
+
+class _Null:
+    def __enter__(self):
+        return None
+
+    def __exit__(self, *a):
+        return None
+
+
+def _step(rep: StageReport | None, name: str):
+    from contextlib import nullcontext
+
+    return rep.step(name) if rep is not None else nullcontext({})
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# CLI
+# ----------------------------------------------------------------------------------------------------------------
+def add_arguments(p) -> None:
+    p.add_argument("input", type=Path, help="video file (mp4/mov), image folder, or RAW folder (DNG, CR2, NEF, ...)")
+    p.add_argument("dataset", type=Path, help="dataset folder; frames go to DATASET/images/")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--target", type=int, help=f"number of frames to select (video default {DEFAULT_VIDEO_TARGET}; "
+                                              "folders keep every image unless given)")
+    g.add_argument("--every", type=int, help="one frame (the sharpest) per EVERY source frames")
+    p.add_argument("--long-side", type=int, default=1600, help="working size: long side of written images (default 1600)")
+    p.add_argument("--keep", type=int, nargs="*", default=[], help="source indices that must be selected")
+    p.epilog = ("examples:\n  interreal frames room.mp4 out/room                 # 300 sharpest frames, motion-aware\n"
+                "  interreal frames room.mp4 out/room --target 150 --long-side 1280\n"
+                "  interreal frames photos/ out/room                   # every photo, format sniffed from content\n"
+                "  interreal frames raw_dng/ out/room --every 2        # RAW with one white balance for all")
+
+
+def main(args) -> int:
+    paths = extract_frames(args.input, args.dataset, target=args.target, every=args.every,
+                           long_side=args.long_side, keep=args.keep)
+    print(f"{len(paths)} frames -> {args.dataset / IMAGES_DIR} (report: {args.dataset}/reports/frames.json)")
+    return 0

@@ -1,0 +1,79 @@
+"""Compact previews of the propagated masks: a contact-sheet PNG and a small overlay MP4 (PyAV)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .. import atomic
+
+PALETTE = np.array([(230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180),
+                    (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 212)], np.uint8)
+
+
+def overlay(image: np.ndarray, labels: np.ndarray, alpha: float = 0.5) -> np.ndarray:
+    """RGB image with each object tinted and outlined in its palette colour."""
+    out = image.copy()
+    for k in range(1, int(labels.max()) + 1):
+        m = labels == k
+        if not m.any():
+            continue
+        c = PALETTE[(k - 1) % len(PALETTE)].astype(np.float32)
+        out[m] = (out[m] * (1 - alpha) + c * alpha).astype(np.uint8)
+        edge = cv2.morphologyEx(m.astype(np.uint8), cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
+        out[edge] = PALETTE[(k - 1) % len(PALETTE)]
+    return out
+
+
+def thumb(image: np.ndarray, labels: np.ndarray, width: int, caption: str) -> np.ndarray:
+    h = max(8, round(image.shape[0] * width / image.shape[1]))
+    small = cv2.resize(image, (width, h), interpolation=cv2.INTER_AREA)
+    lab = cv2.resize(labels, (width, h), interpolation=cv2.INTER_NEAREST)
+    t = overlay(small, lab)
+    cv2.putText(t, caption, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(t, caption, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    return t
+
+
+def contact_sheet(path: Path, tiles: list[np.ndarray], cols: int = 6) -> None:
+    if not tiles:
+        return
+    h, w = tiles[0].shape[:2]
+    rows = (len(tiles) + cols - 1) // cols
+    sheet = np.full((rows * h, min(cols, len(tiles)) * w, 3), 255, np.uint8)
+    for i, t in enumerate(tiles):
+        r, c = divmod(i, cols)
+        sheet[r * h:(r + 1) * h, c * w:(c + 1) * w] = t[:h, :w]
+    atomic.write_image(path, sheet)
+
+
+class VideoWriter:
+    """H.264 overlay video, written to a temporary name and renamed when complete."""
+
+    def __init__(self, path: Path, width: int, height: int, fps: int = 15):
+        import av
+
+        self.path = Path(path)
+        self.tmp = self.path.with_name(f".{self.path.name}.tmp.mp4")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.size = (width - width % 2, height - height % 2)
+        self.container = av.open(str(self.tmp), mode="w")
+        self.stream = self.container.add_stream("h264", rate=fps)
+        self.stream.width, self.stream.height = self.size
+        self.stream.pix_fmt = "yuv420p"
+        self.stream.options = {"crf": "28", "preset": "veryfast"}
+
+    def add(self, rgb: np.ndarray) -> None:
+        import av
+
+        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb[: self.size[1], : self.size[0]]), format="rgb24")
+        for pkt in self.stream.encode(frame):
+            self.container.mux(pkt)
+
+    def close(self) -> None:
+        for pkt in self.stream.encode():
+            self.container.mux(pkt)
+        self.container.close()
+        self.tmp.replace(self.path)

@@ -1,0 +1,192 @@
+"""The `masks` stage: keyframe annotations + DS/images -> DS/masks/*.npy, DS/sfm_masks/, previews, report."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from .. import atomic
+from ..conventions import IMAGES_DIR, FRAME_PREFIX, frame_id, frame_index, index_to_onehot
+from ..dataset import list_images, read_image_rgb, read_mapping, write_mapping, write_mask
+from ..errors import InputError
+from ..report import StageReport
+from .appearance import AppearanceConfig
+from .confidence import frame_confidence, suggest_frames
+from .flow import FlowConfig
+from .keyframes import load_keyframes
+from .preview import VideoWriter, contact_sheet, overlay, thumb
+from .track import Propagator, TrackConfig
+
+SFM_MASKS_DIR = "sfm_masks"
+PREVIEWS_DIR = "previews"
+PREVIEW_KINDS = ("sheet", "video", "both", "none")
+
+
+def make_config(work_long_side: int = 480, flow: str = "dis", preset: str = "fast", appearance: float = 0.25,
+                rigid: float = 1.0, fusion: bool = True, refine: bool = True) -> TrackConfig:
+    """A TrackConfig from the user-facing options."""
+    return TrackConfig(flow=FlowConfig(method=flow, preset=preset), appearance=AppearanceConfig(weight=appearance),
+                       work_long_side=work_long_side, rigid=rigid, fusion=fusion,
+                       refine_radius=TrackConfig.refine_radius if refine else 0,
+                       out_radius=TrackConfig.out_radius if refine else 0)
+
+
+def dataset_frames(ds: Path) -> list[Path]:
+    images = [p for p in list_images(ds / IMAGES_DIR) if p.stem.startswith(FRAME_PREFIX) and frame_id(p).isdigit()]
+    if not images:
+        raise InputError(f"{ds / IMAGES_DIR} has no frame_NNNNN images: run `interreal frames VIDEO {ds}` first")
+    return sorted(images, key=frame_index)
+
+
+def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int = 480, flow: str = "dis",
+              preset: str = "fast", appearance: float = 0.25, rigid: float = 1.0, fusion: bool = True,
+              refine: bool = True, suggest: int = 5, preview: str = "both", sfm_dilate: int | None = None,
+              progress: bool = True, config: TrackConfig | None = None) -> dict[str, Any]:
+    """Propagate keyframe masks to every frame of DS; returns the report's figures.
+
+    `config` (a TrackConfig) overrides the individual options (benchmarks use it for the baseline).
+
+    Everything the user gave is checked first (InputError, nothing written); then the report is opened
+    ("running"), so a crash half-way leaves it "failed" and `interreal validate` refuses the dataset.
+    """
+    ds = Path(ds)
+    if preview not in PREVIEW_KINDS:
+        raise InputError(f"--preview {preview!r}: choose one of {PREVIEW_KINDS}")
+    cfg = config or make_config(work_long_side, flow, preset, appearance, rigid, fusion, refine)
+    images = dataset_frames(ds)
+    fids = [frame_id(p) for p in images]
+    first = read_image_rgb(images[0])
+    size = (first.shape[1], first.shape[0])
+    ds_mapping = read_mapping(ds)
+    pos_of = {f: i for i, f in enumerate(fids)}
+
+    def image_of(fid: str) -> np.ndarray:
+        return load(pos_of[fid])
+
+    def load(pos: int) -> np.ndarray:
+        img = read_image_rgb(images[pos])
+        if (img.shape[1], img.shape[0]) != size:
+            raise InputError(f"{images[pos]} is {img.shape[1]}x{img.shape[0]}, other frames are {size[0]}x{size[1]}; "
+                             f"re-run `interreal frames`")
+        return img
+
+    t0 = time.perf_counter()
+    kf = load_keyframes(keyframes_dir, fids, size, ds_mapping, image_of=image_of)
+    t_kf = time.perf_counter() - t0
+    n_obj = len(kf.names)
+    anchors = {pos_of[f]: m for f, m in kf.masks.items()}
+    inputs = {"keyframes_dir": str(keyframes_dir), "keyframes": kf.sources, "frames": len(fids),
+              "size": list(size), "objects": kf.names}
+    settings = {**asdict(cfg), "suggest": suggest, "preview": preview}
+    with StageReport(ds, "masks", inputs=inputs, settings=settings) as rep:
+        rep.steps["keyframes"] = {"wall_s": round(t_kf, 4)}
+        if not ds_mapping:
+            write_mapping(ds, dict(enumerate(kf.names)))
+        dil = sfm_dilate if sfm_dilate is not None else max(2, round(0.006 * float(np.hypot(*size))))
+        prop = Propagator(load, len(fids), size, n_obj, cfg)
+        ref = {p: np.array([(m == k + 1).mean() for k in range(n_obj)]) for p, m in anchors.items()}
+        conf = np.ones((len(fids), n_obj))
+        area = np.zeros((len(fids), n_obj))
+        sheet_pos = set(np.linspace(0, len(fids) - 1, min(len(fids), 24)).round().astype(int).tolist())
+        tiles: dict[int, np.ndarray] = {}
+        vid_w = min(480, size[0])
+        video: dict[int, np.ndarray] = {}
+        t_write = 0.0
+        with rep.step("propagate") as info:
+            t_start = time.perf_counter()
+            bar = tqdm(total=len(fids), desc="masks", unit="frame", disable=not progress)
+            for res in prop.run(anchors):
+                tw = time.perf_counter()
+                write_mask(ds, fids[res.pos], index_to_onehot(res.labels, n_obj))
+                _write_sfm_mask(ds, images[res.pos].name, res.labels, dil)
+                if res.keyframe:
+                    area[res.pos] = ref[res.pos]
+                else:
+                    conf[res.pos], area[res.pos] = frame_confidence(
+                        res.soft, res.fwd, res.bwd, res.trust, res.dist, _ref_area(ref, res.pos))
+                if preview != "none":
+                    image = prop.cache.full(res.pos) if res.pos in prop.cache._full else load(res.pos)
+                    cap = f"{fids[res.pos]}{' key' if res.keyframe else ''} c={conf[res.pos].min():.2f}" if n_obj else fids[res.pos]
+                    if preview in ("sheet", "both") and res.pos in sheet_pos:
+                        tiles[res.pos] = thumb(image, res.labels, 240, cap)
+                    if preview in ("video", "both"):
+                        video[res.pos] = thumb(image, res.labels, vid_w, cap)
+                t_write += time.perf_counter() - tw
+                bar.update(1)
+            bar.close()
+            compute = time.perf_counter() - t_start - t_write
+            info.update(frames=len(fids), flow_pairs=prop.flow_pairs, compute_s=round(compute, 3),
+                        write_s=round(t_write, 3), fps=round(len(fids) / max(compute, 1e-9), 2))
+        with rep.step("previews"):
+            prev_dir = ds / PREVIEWS_DIR
+            if tiles:
+                contact_sheet(prev_dir / "masks_sheet.png", [tiles[p] for p in sorted(tiles)])
+            if video:
+                first_v = video[min(video)]
+                vw = VideoWriter(prev_dir / "masks_overlay.mp4", first_v.shape[1], first_v.shape[0])
+                for p in sorted(video):
+                    vw.add(video[p])
+                vw.close()
+        is_key = np.zeros(len(fids), bool)
+        is_key[list(anchors)] = True
+        picks = suggest_frames(conf, is_key, suggest)
+        rep.figures.update({
+            "frames": len(fids), "keyframes": sorted(kf.masks), "objects": kf.names,
+            "fps": info["fps"],
+            "confidence": {n: {fids[i]: round(float(conf[i, k]), 4) for i in range(len(fids))} for k, n in enumerate(kf.names)},
+            "area_fraction": {n: {fids[i]: round(float(area[i, k]), 5) for i in range(len(fids))} for k, n in enumerate(kf.names)},
+            "confidence_mean": {n: round(float(conf[~is_key, k].mean()), 4) if (~is_key).any() else 1.0 for k, n in enumerate(kf.names)},
+            "confidence_min": {n: round(float(conf[:, k].min()), 4) for k, n in enumerate(kf.names)},
+            "suggested_frames": [fids[i] for i in picks],
+            "sfm_dilate_px": dil,
+        })
+        for k, n in enumerate(kf.names):
+            low = [i for i in range(len(fids)) if conf[i, k] < 0.5]
+            if low:
+                rep.warn(f"'{n}': low mask confidence on {len(low)} frames ({_ranges([fids[i] for i in low])}); "
+                         f"add a keyframe there (suggested: {', '.join(fids[i] for i in picks[:3])})",
+                         cause="propagation", object=n, frames=[fids[i] for i in low])
+        return dict(rep.figures)
+
+
+def _ref_area(ref: dict[int, np.ndarray], pos: int) -> np.ndarray:
+    """Area each object 'should' have at pos: linear between the surrounding keyframes."""
+    keys = sorted(ref)
+    before = [k for k in keys if k <= pos]
+    after = [k for k in keys if k >= pos]
+    if not before:
+        return ref[after[0]]
+    if not after:
+        return ref[before[-1]]
+    a, b = before[-1], after[0]
+    if a == b:
+        return ref[a]
+    w = (pos - a) / (b - a)
+    return (1 - w) * ref[a] + w * ref[b]
+
+
+def _write_sfm_mask(ds: Path, image_name: str, labels: np.ndarray, dilate: int) -> None:
+    """COLMAP mask `sfm_masks/<image name>.png`: 255 = use the pixel for SfM, 0 = object (moves), ignore."""
+    obj = (labels > 0).astype(np.uint8)
+    if dilate > 0 and obj.any():
+        obj = cv2.dilate(obj, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilate + 1, 2 * dilate + 1)))
+    atomic.write_image(ds / SFM_MASKS_DIR / f"{image_name}.png", np.where(obj > 0, 0, 255).astype(np.uint8))
+
+
+def _ranges(fids: list[str]) -> str:
+    nums = sorted(int(f) for f in fids)
+    out, start, prev = [], nums[0], nums[0]
+    for n in nums[1:] + [None]:
+        if n is not None and n == prev + 1:
+            prev = n
+            continue
+        out.append(f"{start}" if start == prev else f"{start}-{prev}")
+        if n is not None:
+            start = prev = n
+    return ", ".join(out[:8]) + (" ..." if len(out) > 8 else "")

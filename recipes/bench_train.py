@@ -1,0 +1,290 @@
+"""Benchmark `livescene train` on the default simulated capture at 320x240 (2 CPU cores).
+
+Runs (each a flat record: data, variant, minutes, steps, psnr, ssim, state_mae, novel_state_psnr, mask_iou,
+params, label_fraction):
+  main       the cpu preset for 15 minutes (--quick: 2), full held-out evaluation (every 8th frame)
+  reject     probability rejection s = 0 (official) against ours, equal time
+  labels     state MAE against the fraction of labelled frames (1, 2, 5, 10, 25 %)
+  capacity   held-out PSNR against parameter count (capacity x0.25 .. x2; x1 = the auto size)
+  objects    parameter count against the number of objects (1..6; no training needed)
+Data: `interreal synth` (300 frames, 640x480) -> `truth_dataset` at 320x240 (simulator truth for poses and masks,
+labels on ~10 % of frames); the scene box comes from the capture's depth maps (SfM's sparse_pc.ply plays that
+role on real data). Charts: DIR/train.png (4 panels).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchlib import bench_args, print_table, write_results  # noqa: E402
+
+COLUMNS = ["data", "variant", "minutes", "steps", "psnr", "ssim", "state_mae", "novel_state_psnr", "mask_iou",
+           "params", "label_fraction"]
+
+
+def extra_args(p) -> None:
+    p.add_argument("--data", type=Path, default=None, help="an existing `interreal synth` capture (default: make one)")
+    p.add_argument("--only", default="main,reject,labels,capacity,objects", help="comma list of parts to run")
+    p.add_argument("--minutes", type=float, default=None, help="main run length (default 15, --quick 2)")
+    p.add_argument("--sweep-minutes", type=float, default=None, help="length of each sweep run (default 4, --quick 1)")
+    p.add_argument("--eval-frames", type=int, default=None, help="held-out frames evaluated (default all, --quick 4)")
+    p.add_argument("--eval-scale", type=float, default=None,
+                   help="render scale of the evaluation (default 0.5 on CPU: 160x120, 1 on CUDA)")
+    p.add_argument("--novel", type=int, default=None, help="held-out cameras at novel states (default 3)")
+    p.add_argument("--sweep-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="settings for the sweep runs only, e.g. --sweep-set batch_rays=256 (repeatable)")
+    p.add_argument("--threads", type=int, default=0, help="CPU threads (0 = auto: 1 on a busy machine)")
+    p.add_argument("--device", default="auto")
+
+
+def make_capture(out: Path, quick: bool) -> Path:
+    from interreal.synth import SynthConfig, write_capture
+
+    cap = out / "data" / "cap"
+    if not (cap / "gt" / "states.json").exists():
+        write_capture(SynthConfig(frames=300, width=640, height=480, seed=0), cap, progress=True)
+    return cap
+
+
+def make_dataset(cap: Path, out: Path) -> Path:
+    from interreal.synth import truth_dataset
+
+    ds = out / "data" / "ds"
+    if not (ds / "transforms.json").exists():
+        truth_dataset(cap, ds, size=(320, 240))
+    return ds
+
+
+def depth_box(cap_dir: Path, every: int = 10) -> list[float]:
+    """World box of the surfaces the capture saw (depth maps back-projected), 0.5-99.5 percentiles, 5 % pad."""
+    from interreal.conventions import opengl_to_opencv
+    from interreal.synth import Capture
+
+    cap = Capture.open(cap_dir)
+    intr = cap.intrinsics
+    pts = []
+    for i in range(0, len(cap), every):
+        d = cap.depth(i)
+        h, w = d.shape
+        it = intr.scaled(w, h)
+        ys, xs = np.mgrid[0:h:4, 0:w:4]
+        z = d[ys, xs]
+        ok = z > 0
+        x = (xs[ok] + 0.5 - it.cx) / it.fl_x * z[ok]
+        y = (ys[ok] + 0.5 - it.cy) / it.fl_y * z[ok]
+        c2w = opengl_to_opencv(cap.poses[i])
+        pts.append(np.stack([x, y, z[ok]], -1) @ c2w[:3, :3].T + c2w[:3, 3])
+    p = np.concatenate(pts)
+    lo, hi = np.percentile(p, 0.5, 0), np.percentile(p, 99.5, 0)
+    pad = 0.05 * (hi - lo)
+    return [float(v) for v in np.concatenate([lo - pad, hi + pad])]
+
+
+def relabel(ds: Path, cap: Path, fraction: float, out: Path) -> Path:
+    """A copy of `ds` (images/masks linked) whose labels cover `fraction` of the frames (evenly spread + ends)."""
+    import shutil
+
+    from interreal import dataset as D
+    from interreal.conventions import frame_name
+    from interreal.synth import Capture
+
+    dst = out / "data" / f"ds_labels_{int(round(fraction * 1000)):03d}"
+    if dst.exists():
+        shutil.rmtree(dst)
+    dst.mkdir(parents=True)
+    for name in ("images", "masks"):
+        (dst / name).symlink_to((ds / name).resolve())
+    for name in ("transforms.json", "mapping.yaml", "prompts.yaml"):
+        if (ds / name).exists():
+            shutil.copy(ds / name, dst / name)
+    src = D.load_dataset(ds)
+    truth = Capture.open(cap)
+    states = np.asarray(json.loads((cap / "gt" / "states.json").read_text())["values"])
+    n = len(src.frames)
+    k = max(2, int(round(fraction * n)))
+    pick = sorted(set(np.linspace(0, n - 1, k).round().astype(int).tolist()))
+    labels = {}
+    for j in pick:
+        f = src.frames[j]
+        labels[frame_name(f.index)] = {nm: float(round(states[f.index, c], 4)) for c, nm in enumerate(truth.names)}
+    D.write_labels(dst, labels)
+    return dst
+
+
+EVAL_SCALE = 0.5
+NOVEL = 3
+
+
+def train_and_eval(ds: Path, cap: Path, run_dir: Path, minutes: float, box: list[float], device: str,
+                   eval_frames: int, overrides: list[str] | None = None, novel: int | None = None) -> dict:
+    import shutil
+
+    from livescene.config import apply_overrides, load_preset
+    from livescene.evaluate import CaptureTruth, evaluate
+    from livescene.trainer import load_run, train
+
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    cfg = load_preset("cpu" if device != "cuda" else "gpu")
+    cfg.scene_box = box
+    cfg.steps = 100000  # time-limited
+    apply_overrides(cfg, overrides or [])
+    t0 = time.perf_counter()
+    summary = train(ds, run_dir, cfg, device=device, max_minutes=minutes, show_progress=False)
+    wall = time.perf_counter() - t0
+    run = load_run(run_dir, device=device)
+    t1 = time.perf_counter()
+    res = evaluate(run, CaptureTruth(cap, run.views), max_frames=eval_frames, scale=EVAL_SCALE,
+                   novel=NOVEL if novel is None else novel, progress=False)
+    curve = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    curve = [(r["elapsed_s"] / 60, r["psnr"]) for r in curve if r.get("type") == "eval"]
+    return {"minutes": round(summary["elapsed_s"] / 60, 2), "wall_minutes": round(wall / 60, 2),
+            "eval_minutes": round((time.perf_counter() - t1) / 60, 2), "steps": summary["steps"],
+            "psnr": res["psnr"], "ssim": res["ssim"], "state_mae": res.get("state_mae"),
+            "state_mae_max": res.get("state_mae_max"), "novel_state_psnr": res.get("novel_state_psnr"),
+            "mask_iou": res.get("mask_iou"), "depth_l1": res.get("depth_l1"), "params": summary["params"],
+            "reject_threshold": res["reject_threshold"], "eval_scale": EVAL_SCALE, "eval_frames": res["held_out_frames"],
+            "curve": curve}
+
+
+def part_of(variant: str) -> str:
+    return variant.split(" ")[0]
+
+
+def charts(path: Path, runs: list[dict]) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8), dpi=100)
+    ax = axes[0, 0]
+    for r in runs:
+        if r.get("curve") and r["variant"] in ("main", "reject s=0", "reject s=0.5"):
+            xs, ys = zip(*r["curve"])
+            ax.plot(xs, ys, "-o", ms=3, label=f"{r['variant']} (quick eval, 160 px)")
+            if r.get("psnr") is not None:
+                ax.scatter([r["minutes"]], [r["psnr"]], marker="*", s=120, label=f"{r['variant']} full held-out")
+    ax.axhline(28, ls="--", c="gray", lw=0.8)
+    ax.set(xlabel="training minutes (2 shared CPU cores)", ylabel="held-out PSNR (dB)", title="PSNR against wall time")
+    ax.legend(fontsize=7)
+    ax = axes[0, 1]
+    lab = sorted([r for r in runs if r["variant"].startswith("labels")], key=lambda r: r["label_fraction"])
+    if lab:
+        ax.plot([100 * r["label_fraction"] for r in lab], [r["state_mae"] for r in lab], "-o")
+        ax.axhline(0.05, ls="--", c="gray", lw=0.8)
+        ax.set_xscale("log")
+    ax.set(xlabel="labelled frames (%)", ylabel="state MAE, unlabelled frames", title="State error against labels")
+    ax = axes[1, 0]
+    cap = sorted([r for r in runs if r["variant"].startswith("capacity")], key=lambda r: r["params"])
+    if cap:
+        ax.plot([r["params"] for r in cap], [r["psnr"] for r in cap], "-o")
+        for r in cap:
+            ax.annotate(r["variant"].replace("capacity ", "") + (" (auto)" if r.get("auto") else ""),
+                        (r["params"], r["psnr"]), fontsize=8, xytext=(3, 3), textcoords="offset points")
+        auto = [r for r in cap if r.get("auto")]
+        if auto:
+            ax.scatter([auto[0]["params"]], [auto[0]["psnr"]], s=150, facecolors="none", edgecolors="r")
+        ax.set_xscale("log")
+    ax.set(xlabel="parameters", ylabel="held-out PSNR (dB)", title="Capacity sweep (equal time)")
+    ax = axes[1, 1]
+    obj = sorted([r for r in runs if r["variant"].startswith("objects")], key=lambda r: r["objects"])
+    if obj:
+        ax.plot([r["objects"] for r in obj], [r["params"] / 1e6 for r in obj], "-o")
+    ax.set(xlabel="interactive objects", ylabel="parameters (M)", title="Parameters against object count")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def _with_jemalloc() -> None:
+    """Re-run under jemalloc like `livescene train` does (LIVESCENE_NO_JEMALLOC=1 opts out)."""
+    import os
+
+    from livescene.trainer import JEMALLOC, NO_JEMALLOC_ENV, _jemalloc_loaded
+
+    if os.environ.get(NO_JEMALLOC_ENV) or not os.path.exists(JEMALLOC) or _jemalloc_loaded():
+        return
+    env = {**os.environ, "LD_PRELOAD": (JEMALLOC + " " + os.environ.get("LD_PRELOAD", "")).strip(),
+           NO_JEMALLOC_ENV: "1"}
+    os.execve(sys.executable, [sys.executable, *sys.argv], env)
+
+
+def main() -> int:
+    args = bench_args("train", __doc__.splitlines()[0], extra_args)
+    _with_jemalloc()
+    from livescene.device import configure_threads, select_device
+
+    threads = configure_threads(args.threads)
+
+    device = str(select_device(args.device).type)
+    quick = args.quick
+    minutes = args.minutes or (2.0 if quick else 15.0)
+    sweep_minutes = args.sweep_minutes or (1.0 if quick else 4.0)
+    eval_frames = args.eval_frames if args.eval_frames is not None else (4 if quick else 0)
+    only = set(args.only.split(","))
+    global EVAL_SCALE, NOVEL
+    EVAL_SCALE = args.eval_scale or (1.0 if device == "cuda" else 0.5)
+    NOVEL = args.novel if args.novel is not None else 3
+    cap = args.data or make_capture(args.out, quick)
+    ds = make_dataset(cap, args.out)
+    box = depth_box(cap)
+    from interreal.dataset import load_dataset
+
+    base = load_dataset(ds)
+    label_fraction = sum(1 for _ in base.labels) / len(base.frames)
+    results_path = args.out / "train.json"
+    runs: list[dict] = []
+    if results_path.exists():  # keep the parts not re-run now (so parts can run in separate sessions)
+        runs = [r for r in json.loads(results_path.read_text()).get("runs", []) if part_of(r["variant"]) not in only]
+
+    def record(variant: str, rec: dict, **extra) -> None:
+        runs.append({"data": "synth-truth 320x240", "variant": variant, "label_fraction": round(label_fraction, 3),
+                     **rec, **extra})
+        write_results(args.out, "train", runs, quick=quick, device=device, box=box, threads=threads)
+        charts(args.out / "train.png", runs)
+
+    if "main" in only:
+        record("main", train_and_eval(ds, cap, args.out / "runs" / "main", minutes, box, device, eval_frames))
+    if "reject" in only:
+        for s in (0.0, 0.5):
+            record(f"reject s={s:g}", train_and_eval(ds, cap, args.out / "runs" / f"reject_{s:g}", sweep_minutes * 2,
+                                                     box, device, min(eval_frames or 4, 4),
+                                                     [*args.sweep_set, f"model.reject_threshold={s}"]))
+    if "labels" in only:
+        for frac in (0.01, 0.02, 0.05, 0.10, 0.25):
+            dsl = relabel(ds, cap, frac, args.out)
+            rec = train_and_eval(dsl, cap, args.out / "runs" / f"labels_{frac:g}", sweep_minutes, box, device,
+                                 1, args.sweep_set, novel=0)
+            record(f"labels {frac:.0%}", rec, label_fraction=frac)
+    if "capacity" in only:
+        for c in (0.25, 0.5, 1.0, 2.0):
+            rec = train_and_eval(ds, cap, args.out / "runs" / f"capacity_{c:g}", sweep_minutes, box, device,
+                                 min(eval_frames or 2, 2), [*args.sweep_set, f"model.capacity={c}"], novel=0)
+            record(f"capacity x{c:g}", rec, auto=c == 1.0)
+    if "objects" in only:
+        from livescene.config import load_preset
+        from livescene.data import load_views
+        from livescene.field import LiveSceneModel
+        from livescene.trainer import build_model
+
+        cfg = load_preset("cpu")
+        cfg.scene_box = box
+        views = load_views(ds, cfg)
+        rcfg, _ = build_model(cfg, views)
+        for n in range(1, 7):
+            record(f"objects {n}", {"params": LiveSceneModel(rcfg.model, n).param_count()}, objects=n)
+    print_table(runs, COLUMNS, title=f"livescene train ({'quick' if quick else 'full'}, {device})")
+    print(f"-> {results_path}, {args.out / 'train.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

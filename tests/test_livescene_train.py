@@ -1,0 +1,246 @@
+"""livescene training on a toy articulated room: loss falls, PSNR passes a bar, resume is exact, the
+learned states follow the labels, official layouts load, rendering at a new state changes only the object."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_livescene_toy import ToyScene, toy_dataset  # noqa: E402
+
+from livescene.config import load_preset  # noqa: E402
+from livescene.trainer import Trainer, load_run, train  # noqa: E402
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """One torch thread: on a shared 2-core machine, OpenMP workers waiting on each other cost 10x."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def trained(one_thread, tmp_path_factory):
+    """One tiny run shared by the slow tests of this file (about 15 s on an idle core, minutes on a crowded one)."""
+    root = tmp_path_factory.mktemp("ls_train")
+    ds = toy_dataset(root / "ds", n_frames=24, size=(40, 30))
+    cfg = load_preset("tiny")
+    cfg.steps = 300
+    summary = train(ds, root / "run", cfg, device="cpu", show_progress=False)
+    return ds, root / "run", summary
+
+
+@pytest.mark.slow
+def test_loss_falls_and_psnr_passes(trained):
+    ds, run_dir, summary = trained
+    logs = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    train_logs = [r for r in logs if r["type"] == "train"]
+    assert train_logs[-1]["rgb"] < 0.3 * train_logs[0]["rgb"]
+    assert summary["train_psnr"] > 24.0
+    assert summary["heldout_psnr_quick"] > 22.0
+    for name in ("config.yaml", "latest.pt", "objects.yaml", "reports/train.json"):
+        assert (run_dir / name).exists(), name
+    assert json.loads((run_dir / "reports" / "train.json").read_text())["status"] == "ok"
+
+
+@pytest.mark.slow
+def test_learned_states_follow_labels(trained):
+    ds, run_dir, _ = trained
+    run = load_run(run_dir, device="cpu")
+    labels, given = run.dataset.label_matrix()
+    given &= np.isin(np.arange(len(given)), run.views.train)[:, None]
+    with torch.no_grad():
+        pred = run.model.frame_values(torch.as_tensor(run.views.times))[:, :1].numpy()
+    assert np.abs(pred - labels)[given].mean() < 0.08
+
+
+@pytest.mark.slow
+def test_new_state_changes_only_the_object(trained):
+    from livescene.render import render_view
+
+    ds, run_dir, _ = trained
+    run = load_run(run_dir, device="cpu")
+    i = run.views.train[5]
+    c2w, intr = run.views.c2w_gl[i], run.views.intrinsics[i]
+    a = render_view(run, c2w, intr, {"door": 0.0})
+    b = render_view(run, c2w, intr, {"door": 1.0})
+    assert a["probs"].shape == (30, 40, 2) and np.allclose(a["probs"].sum(-1), 1, atol=1e-4)
+    diff = np.abs(a["rgb"] - b["rgb"]).max(-1)
+    # the truth: pixels that show the door in neither state must not change
+    _, _, idx0 = ToyScene(1).render(c2w, [0.0], intr)
+    _, _, idx1 = ToyScene(1).render(c2w, [1.0], intr)
+    static = (idx0 == 0) & (idx1 == 0)
+    model_static = (a["probs"][..., 0] < 0.5) & (b["probs"][..., 0] < 0.5)
+    assert diff[(idx0 == 1) | (idx1 == 1)].mean() > 0.02  # the door does move
+    assert np.percentile(diff[static & model_static], 95) < 0.02
+    assert (static & model_static).mean() > 0.5
+
+
+def _run(ds: Path, out: Path, steps: int) -> Trainer:
+    cfg = load_preset("tiny")
+    cfg.steps, cfg.ckpt_every, cfg.eval_every, cfg.log_every = steps, 0, 0, 5
+    tr = Trainer(ds, out, cfg, device="cpu", show_progress=False)
+    return tr
+
+
+def test_resume_is_exact(tmp_path):
+    ds = toy_dataset(tmp_path / "ds", n_frames=10, size=(16, 12))
+    full = _run(ds, tmp_path / "full", 8)
+    full.fit()
+    part = _run(ds, tmp_path / "part", 8)
+    for _ in range(5):  # "killed" after 5 steps: checkpoint then a fresh process resumes
+        part.train_step()
+    part.save_checkpoint()
+    del part
+    resumed = Trainer(ds, tmp_path / "part", load_preset("tiny"), device="cpu", resume=True, show_progress=False)
+    assert resumed.step == 5
+    resumed.cfg.steps = 8
+    resumed.fit()
+    a, b = full.model.state_dict(), resumed.model.state_dict()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
+@pytest.mark.slow
+def test_refuses_to_overwrite_a_run(tmp_path, trained):
+    from livescene.errors import LiveSceneError
+
+    ds, run_dir, _ = trained
+    with pytest.raises(LiveSceneError, match="--resume"):
+        Trainer(ds, run_dir, load_preset("tiny"), device="cpu")
+
+
+def test_official_omnisim_layout_loads(tmp_path):
+    from livescene.data import RayData, load_views
+
+    ds = toy_dataset(tmp_path / "omni", n_frames=9, size=(24, 18), blender=True)
+    meta = json.loads((ds / "transforms.json").read_text())
+    assert "camera_angle_x" in meta and not meta["frames"][0]["file_path"].endswith(".png")
+    cfg = load_preset("tiny")
+    views = load_views(ds, cfg)
+    assert views.dataset.layout == "blender" and len(views.train) == 8 and len(views.held_out) == 1
+    assert abs(views.intrinsics[0].fl_x - 0.9 * 24) < 1e-6
+    data = RayData(views, torch.device("cpu"))
+    batch = data.sample(64, torch.Generator().manual_seed(0), 0.25)
+    assert batch["rgb"].shape == (64, 3) and torch.allclose(batch["dirs"].norm(dim=-1), torch.ones(64), atol=1e-5)
+    assert int((batch["mask"] >= 0).sum()) == 64
+
+
+def test_rays_match_the_toy_cameras(tmp_path):
+    """Distorted pixel centres, OpenGL poses -> OpenCV rays: rays of the loader hit what the toy renderer saw."""
+    from livescene.data import RayData, load_views
+
+    ds = toy_dataset(tmp_path / "ds", n_frames=9, size=(24, 18))
+    views = load_views(ds, load_preset("tiny"))
+    data = RayData(views, torch.device("cpu"))
+    f = torch.tensor([2, 2]); ys = torch.tensor([0, 17]); xs = torch.tensor([0, 23])
+    b = data.gather(f, ys, xs)
+    from livescene.data import camera_rays
+
+    o, d, _ = camera_rays(views.c2w_gl[2], views.intrinsics[2])
+    assert np.allclose(b["dirs"][0].numpy(), d[0], atol=1e-5) and np.allclose(b["dirs"][1].numpy(), d[-1], atol=1e-5)
+    assert np.allclose(b["origins"][0].numpy(), o[0], atol=1e-5)
+
+
+@pytest.mark.slow
+def test_render_cli_sweep_video_and_maps(trained, tmp_path):
+    from livescene.cli import main
+
+    ds, run_dir, _ = trained
+    out = tmp_path / "r"
+    assert main(["render", str(run_dir), "--sweep", "door=0:1:3", "--out", str(out), "--video",
+                 str(tmp_path / "door.mp4"), "--depth", "--probs", "--device", "cpu"]) == 0
+    pngs = sorted(p.name for p in out.glob("*.png"))
+    assert len([p for p in pngs if p.endswith("_probs.png")]) == 3 and len([p for p in pngs if "_depth" in p]) == 6
+    import av
+
+    with av.open(str(tmp_path / "door.mp4")) as c:
+        assert c.streams.video[0].codec_context.name == "h264"
+        assert sum(1 for _ in c.decode(video=0)) == 3
+    cams = {"frames": [{"transform_matrix": np.eye(4).tolist(), "states": {"door": 0.5}}]}
+    (tmp_path / "cams.json").write_text(json.dumps(cams))
+    assert main(["render", str(run_dir), "--cameras", str(tmp_path / "cams.json"), "--out", str(out / "j"),
+                 "--device", "cpu"]) == 0
+    assert (out / "j" / "cam_0000.png").exists()
+    assert main(["render", str(run_dir), "--state", "nosuch=1", "--device", "cpu"]) == 2
+
+
+@pytest.mark.slow
+def test_eval_with_truth(trained, tmp_path):
+    from livescene.evaluate import evaluate
+
+    ds, run_dir, _ = trained
+    run = load_run(run_dir, device="cpu")
+    states = np.load(ds / "toy_states.npy")
+    scene = ToyScene(1)
+
+    class Truth:
+        def __init__(self):
+            self.states = states
+
+        def render(self, c2w, st, intr):
+            return scene.render(c2w, st, intr)[0]
+
+        def depth(self, i, intr):
+            return scene.render(run.views.c2w_gl[i], states[i], intr)[1]
+
+        def instance(self, i, intr):
+            return scene.render(run.views.c2w_gl[i], states[i], intr)[2]
+
+    res = evaluate(run, Truth(), novel=2, progress=False)
+    assert res["held_out_frames"] == 3
+    assert res["psnr"] > 20 and 0 < res["ssim"] <= 1
+    assert res["state_mae"] < 0.15 and res["mask_iou"] > 0.5
+    assert res["novel_state_psnr"] > 18 and res["depth_l1"] < 1.0
+
+
+def test_nan_rolls_back_then_stops(tmp_path, monkeypatch):
+    from livescene.errors import DivergenceError
+
+    ds = toy_dataset(tmp_path / "ds", n_frames=9, size=(16, 12))
+    tr = _run(ds, tmp_path / "run", 6)
+    real = tr.losses
+    calls = {"n": 0}
+
+    def flaky(batch):
+        terms, out = real(batch)
+        calls["n"] += 1
+        if calls["n"] == 3:  # one bad step: roll back to the last checkpoint with half the learning rate
+            terms["rgb"] = terms["rgb"] * float("nan")
+        return terms, out
+
+    monkeypatch.setattr(tr, "losses", flaky)
+    summary = tr.fit()
+    assert summary["steps"] == 6 and summary["rollbacks"] == 1 and tr.lr_scale == 0.5
+    logs = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert any(r["type"] == "rollback" for r in logs)
+
+    tr2 = _run(ds, tmp_path / "run2", 6)
+    real2 = tr2.losses
+
+    def always_nan(batch):
+        terms, out = real2(batch)
+        terms["rgb"] = terms["rgb"] * float("nan")
+        return terms, out
+
+    monkeypatch.setattr(tr2, "losses", always_nan)
+    with pytest.raises(DivergenceError, match="diverged"):
+        tr2.fit()
+
+
+def test_cli_help_has_examples(capsys):
+    from livescene.cli import main
+
+    for cmd in ("train", "render", "eval"):
+        with pytest.raises(SystemExit):
+            main([cmd, "--help"])
+        assert "examples:" in capsys.readouterr().out

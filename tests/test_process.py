@@ -1,0 +1,97 @@
+"""`interreal process`: stage order, annotated frames forced into the selection, missing stages, end to end."""
+
+from __future__ import annotations
+
+import json
+import sys
+import types
+
+import pytest
+import yaml
+
+from interreal import cli
+from interreal import process as proc
+from interreal.errors import InputError, StageError
+
+from test_ingest import textured, write_video
+from test_sfm import errors, gt
+
+
+def test_annotation_files_name_the_frames_to_keep(tmp_path):
+    kf = tmp_path / "keyframes"
+    kf.mkdir()
+    for name in ("00000.png", "00042.json", "frame_00007.png", "mapping.yaml", "notes.txt"):
+        (kf / name).write_text("x")
+    assert proc.keyframe_indices(kf) == [0, 7, 42]
+    labels = tmp_path / "states.yaml"
+    labels.write_text(yaml.safe_dump({"frame_00003": {"door": 0.0}, "frame_00011": {"door": 1.0}}))
+    assert proc.label_indices(labels) == [3, 11]
+    csv = tmp_path / "states.csv"
+    csv.write_text("frame,object,value\nframe_00005,door,0.5\n9,door,1\n")
+    assert proc.label_indices(csv) == [5, 9]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="no keyframe files"):
+        proc.keyframe_indices(empty)
+
+
+def test_stages_run_in_order_with_annotated_frames_kept(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(proc, "extract_frames", lambda src, ds, **kw: calls.append(("frames", kw)) or [1, 2, 3])
+    monkeypatch.setattr(proc, "estimate_poses", lambda ds, **kw: calls.append(("poses", kw)) or
+                        {"registered": 3, "total": 3})
+    masks = types.ModuleType("interreal.masks")
+    masks.propagate = lambda ds, kdir, **kw: calls.append(("masks", kdir.name))
+    labels = types.ModuleType("interreal.labels")
+    labels.import_labels = lambda ds, f, **kw: calls.append(("labels", f.name))
+    monkeypatch.setitem(sys.modules, "interreal.masks", masks)
+    monkeypatch.setitem(sys.modules, "interreal.labels", labels)
+    kf = tmp_path / "kf"
+    kf.mkdir()
+    (kf / "00012.png").write_text("x")
+    states = tmp_path / "states.yaml"
+    states.write_text(yaml.safe_dump({"frame_00030": {"door": 1.0}}))
+    proc.process("in.mp4", tmp_path / "ds", keyframes=kf, labels=states, target=50, matcher="sequential")
+    assert [c[0] for c in calls] == ["frames", "masks", "poses", "labels"]
+    assert calls[0][1]["keep"] == [12, 30] and calls[0][1]["target"] == 50
+    assert calls[2][1]["matcher"] == "sequential"
+    rep = json.loads((tmp_path / "ds" / "reports" / "process.json").read_text())
+    assert rep["status"] == "ok" and list(rep["steps"]) == ["frames", "masks", "poses", "labels"]
+
+
+def test_missing_stage_module_fails_before_any_work(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "interreal.masks", None)  # as if masks were not in this build
+    kf = tmp_path / "kf"
+    kf.mkdir()
+    (kf / "00000.png").write_text("x")
+    video = write_video(tmp_path / "v.mp4", [textured(i) for i in range(6)])
+    with pytest.raises(StageError, match="--keyframes needs interreal.masks"):
+        proc.process(video, tmp_path / "ds", keyframes=kf)
+    assert not (tmp_path / "ds" / "images").exists()
+
+
+def test_bad_input_exits_non_zero(tmp_path):
+    (tmp_path / "empty.mp4").write_bytes(b"")
+    assert cli.main(["process", str(tmp_path / "empty.mp4"), str(tmp_path / "ds")]) == 2
+
+
+@pytest.mark.slow
+def test_process_video_end_to_end(tmp_path, capsys):
+    """A simulated capture whose parts barely move (so no masks are needed), with its annotated states."""
+    from interreal.synth import SynthConfig, write_capture
+
+    cap = write_capture(SynthConfig(frames=24, width=320, height=240, articulation=0.02), tmp_path / "cap",
+                        progress=False)
+    labels = cap / "annotations" / "states.yaml"
+    ds = tmp_path / "ds"
+    assert cli.main(["process", str(cap / "video.mp4"), str(ds), "--target", "12", "--labels", str(labels)]) == 0
+    out = capsys.readouterr().out
+    assert "frames registered" in out and "process: done" in out
+    kept = {int(p.stem[-5:]) for p in (ds / "images").glob("*.png")}
+    wanted = set(proc.label_indices(labels))
+    assert wanted <= kept and 12 <= len(kept) <= 12 + len(wanted)  # every labelled frame survives selection
+    err = errors(ds, gt(cap))
+    assert err["rot_err_deg_median"] < 0.5 and err["center_err_pct_median"] < 0.5, err
+    for stage in ("frames", "poses", "process"):
+        assert json.loads((ds / "reports" / f"{stage}.json").read_text())["status"] == "ok"
+    assert (ds / "key_frame_value.yaml").exists()

@@ -1,0 +1,213 @@
+"""Poses: orientation and alignment maths, a small simulated capture end to end, resume, import, failures."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from interreal import atomic, cli
+from interreal.conventions import fid_of_index
+from interreal.dataset import load_dataset, validate
+from interreal.errors import InputError, StageError
+from interreal.frames import extract_frames
+from interreal.sfm import (_rot_between, apply_similarity, compare_poses, estimate_poses, estimate_up,
+                           orientation_transform, umeyama)
+
+
+# ------------------------------------------------------------------------------------------------ a simulated capture
+def render_capture(out: Path, frames: int = 24, size=(320, 240), seed: int = 0) -> Path:
+    """video.mp4 + gt/cameras.json + gt/instance/ rendered with the simulator's public Scene API."""
+    import av
+
+    from interreal.synth import SynthConfig, build_scene
+
+    cfg = SynthConfig(frames=frames, width=size[0], height=size[1], seed=seed)
+    scene = build_scene(cfg)
+    poses, states = scene.camera_path(), scene.states()
+    (out / "gt" / "instance").mkdir(parents=True, exist_ok=True)
+    with av.open(str(out / "video.mp4"), "w") as c:
+        s = c.add_stream("libx264", rate=30)
+        s.width, s.height, s.pix_fmt = size[0], size[1], "yuv420p"
+        s.options = {"crf": "18"}
+        for i in range(frames):
+            r = scene.render(poses[i], states[i], frame=i)
+            atomic.write_image(out / "gt" / "instance" / f"{fid_of_index(i)}.png", r.instance)
+            for p in s.encode(av.VideoFrame.from_ndarray(r.rgb, format="rgb24")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    atomic.write_json(out / "gt" / "cameras.json", {"intrinsics": scene.intrinsics.to_json(), "frames": [
+        {"index": i, "transform_matrix": poses[i].tolist()} for i in range(frames)]})
+    return out
+
+
+def truth_masks_npy(capture: Path, ds: Path) -> None:
+    """DS/masks/<fid>.npy one-hot (objects..., background last) from the simulator's instance maps."""
+    for img in sorted((ds / "images").glob("*.png")):
+        fid = img.stem.split("_")[-1]
+        inst = cv2.imread(str(capture / "gt" / "instance" / f"{fid}.png"), cv2.IMREAD_UNCHANGED)
+        onehot = np.stack([inst == 1, inst == 2, (inst != 1) & (inst != 2)], axis=2)
+        atomic.write_npy(ds / "masks" / f"{fid}.npy", onehot)
+
+
+def gt(capture: Path) -> dict[int, np.ndarray]:
+    meta = json.loads((capture / "gt" / "cameras.json").read_text())
+    return {f["index"]: np.asarray(f["transform_matrix"]) for f in meta["frames"]}
+
+
+def errors(ds: Path, truth: dict[int, np.ndarray]) -> dict[str, float]:
+    d = load_dataset(ds)
+    return compare_poses(np.stack([f.c2w for f in d.frames]), np.stack([truth[f.index] for f in d.frames]))
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Path:
+    return render_capture(tmp_path_factory.mktemp("cap"))
+
+
+@pytest.fixture(scope="module")
+def posed(capture, tmp_path_factory) -> tuple[Path, dict]:
+    """The capture through frames + masks (truth) + poses, shared by several tests."""
+    ds = tmp_path_factory.mktemp("ds") / "room"
+    extract_frames(capture / "video.mp4", ds, target=24)
+    truth_masks_npy(capture, ds)
+    fig = estimate_poses(ds)
+    return ds, fig
+
+
+# ------------------------------------------------------------------------------------------------ maths
+def test_umeyama_recovers_a_similarity():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(20, 3))
+    R = _rot_between(np.array([1.0, 0, 0]), np.array([0.3, 0.4, 0.866]))
+    dst = 2.5 * src @ R.T + [1, -2, 3]
+    s, R2, t = umeyama(src, dst)
+    assert s == pytest.approx(2.5) and np.allclose(R2, R) and np.allclose(t, [1, -2, 3])
+
+
+def _handheld_poses(n: int, up_world: np.ndarray, pitch_deg: float, seed: int = 0) -> np.ndarray:
+    """OpenCV c2w of a phone walked along an arc: x axes horizontal (+-2 deg roll), all pitched down alike."""
+    rng = np.random.default_rng(seed)
+    to_world = _rot_between(np.array([0.0, 0, 1]), up_world)  # frame with z = up
+    out = []
+    for k in range(n):
+        yaw = np.radians(k * 60.0 / n)
+        fwd = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+        pitch, roll = np.radians(-pitch_deg), np.radians(rng.normal(0, 2))
+        f = np.cos(pitch) * fwd + np.sin(pitch) * np.array([0, 0, 1.0])
+        x = np.cross(f, [0, 0, 1.0])
+        x /= np.linalg.norm(x)
+        y = np.cross(f, x)
+        c, s = np.cos(roll), np.sin(roll)
+        x, y = c * x + s * y, -s * x + c * y
+        m = np.eye(4)
+        m[:3, :3] = to_world @ np.stack([x, y, f], axis=1)
+        m[:3, 3] = to_world @ np.array([3 * np.cos(yaw), 3 * np.sin(yaw), 1.5])
+        out.append(m)
+    return np.asarray(out)
+
+
+def test_vertical_up_is_unbiased_by_pitch_where_mean_up_is_not():
+    up = np.array([0.2, -0.9, 0.3])
+    up /= np.linalg.norm(up)
+    c2w = _handheld_poses(30, up, pitch_deg=25)
+    ang = lambda a: np.degrees(np.arccos(np.clip(np.dot(a, up), -1, 1)))  # noqa: E731
+    assert ang(estimate_up(c2w, "vertical")) < 1.5
+    assert ang(estimate_up(c2w, "up")) > 15  # nerfstudio's default is off by the pitch
+
+
+def test_orientation_transform_centres_scales_and_puts_up_on_z():
+    up = np.array([0.0, -1.0, 0.0])
+    c2w = _handheld_poses(20, up, pitch_deg=10)
+    T = orientation_transform(c2w, "vertical", True)
+    out = apply_similarity(T, c2w)
+    assert np.allclose(out[:, :3, 3].mean(0), 0, atol=1e-9)
+    assert np.abs(out[:, :3, 3]).max() == pytest.approx(1.0)
+    assert np.allclose(np.einsum("nij,njk->nik", out[:, :3, :3].transpose(0, 2, 1), out[:, :3, :3]), np.eye(3))
+    assert np.degrees(np.arccos(T[:3, :3] @ up / np.linalg.norm(T[:3, :3] @ up) @ [0, 0, 1])) < 1.5
+
+
+# ------------------------------------------------------------------------------------------------ end to end
+@pytest.mark.slow
+def test_small_capture_end_to_end_with_masks(posed, capture):
+    ds, fig = posed
+    assert fig["registered"] == fig["total"] == 24
+    err = errors(ds, gt(capture))
+    assert err["rot_err_deg_median"] < 0.5, err  # 320x240, 24 frames over the whole arc: measured 0.27-0.32
+    assert err["center_err_pct_median"] < 0.3, err  # measured 0.08-0.10
+    meta = json.loads((ds / "transforms.json").read_text())
+    assert meta["camera_model"] == "OPENCV" and meta["w"] == 320 and abs(meta["fl_x"] - 251.15) < 2.5
+    assert meta["k1"] < -0.02  # the simulated barrel distortion is found
+    assert np.asarray(meta["applied_transform"]).shape == (3, 4)
+    assert (ds / "sparse_pc.ply").read_bytes().startswith(b"ply\nformat binary_little_endian")
+    assert (ds / "colmap" / "sparse" / "0" / "images.bin").exists()
+    rep = json.loads((ds / "reports" / "poses.json").read_text())
+    assert rep["status"] == "ok" and rep["inputs"]["masks"]["source"] == "masks.npy"
+    assert rep["figures"]["mean_reproj_error_px"] < 1.0 and rep["figures"]["mean_track_length"] > 3
+    c = np.stack([np.asarray(f["transform_matrix"])[:3, 3] for f in meta["frames"]])
+    assert np.abs(c).max() == pytest.approx(1.0) and np.allclose(c.mean(0), 0, atol=1e-6)
+    assert validate(ds, check_masks=False).kinds() <= {"no-mapping", "no-labels"}
+
+
+@pytest.mark.slow
+def test_rerun_reuses_the_finished_model(posed):
+    ds, fig = posed
+    before = (ds / "transforms.json").read_text()
+    fig2 = estimate_poses(ds)
+    rep = json.loads((ds / "reports" / "poses.json").read_text())
+    assert rep["steps"]["features"]["reused"] and rep["steps"]["reuse"]["reused"]
+    assert fig2["registered"] == fig["registered"]
+    assert json.loads(before)["frames"] == json.loads((ds / "transforms.json").read_text())["frames"]
+
+
+@pytest.mark.slow
+def test_import_transforms_and_colmap_model(posed, tmp_path):
+    ds, _ = posed
+    for kind, src in (("json", ds / "transforms.json"), ("colmap", ds / "colmap" / "sparse")):
+        other = tmp_path / kind
+        shutil.copytree(ds / "images", other / "images")
+        fig = estimate_poses(other, poses=src)
+        assert fig["registered"] == 24 and fig["imported"] == str(src)
+        a = load_dataset(ds)
+        b = load_dataset(other)
+        err = compare_poses(np.stack([f.c2w for f in b.frames]), np.stack([f.c2w for f in a.frames]))
+        assert err["rot_err_deg_max"] < 1e-3 and err["center_err_pct_max"] < 1e-3
+        assert b.intrinsics.fl_x == pytest.approx(a.intrinsics.fl_x)
+
+
+# ------------------------------------------------------------------------------------------------ failures
+def test_unrelated_images_fail_cleanly_and_validate_refuses(tmp_path):
+    ds = tmp_path / "ds"
+    rng = np.random.default_rng(1)
+    for i in range(6):  # independent noise textures: features, but no two images see the same scene
+        img = cv2.resize(rng.integers(0, 256, (30, 40, 3), dtype=np.uint8), (160, 120), interpolation=cv2.INTER_CUBIC)
+        atomic.write_image(ds / "images" / f"frame_{i:05d}.png", img)
+    with pytest.raises(StageError, match="SfM"):
+        estimate_poses(ds, matcher="exhaustive")
+    rep = json.loads((ds / "reports" / "poses.json").read_text())
+    assert rep["status"] == "failed" and len(rep["ladder"]) >= 2  # the retry ladder ran
+    assert not (ds / "transforms.json").exists()
+    assert "stage-incomplete" in validate(ds).kinds()
+    assert cli.main(["poses", str(ds), "--matcher", "exhaustive"]) == 3
+
+
+def test_mixed_sizes_and_too_few_images_are_input_errors(tmp_path):
+    ds = tmp_path / "ds"
+    atomic.write_image(ds / "images" / "frame_00000.png", np.zeros((20, 30, 3), np.uint8))
+    with pytest.raises(InputError, match="at least 3"):
+        estimate_poses(ds)
+    atomic.write_image(ds / "images" / "frame_00001.png", np.zeros((20, 30, 3), np.uint8))
+    atomic.write_image(ds / "images" / "frame_00002.png", np.zeros((24, 30, 3), np.uint8))
+    with pytest.raises(InputError, match="share one size"):
+        estimate_poses(ds)
+
+
+def test_poses_help_has_examples(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["poses", "--help"])
+    assert "examples:" in capsys.readouterr().out

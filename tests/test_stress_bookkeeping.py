@@ -1,0 +1,54 @@
+"""The stress runner's bookkeeping on two levels (no simulation: a fake runner stands in for the pipeline)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO / "recipes"))
+spec = importlib.util.spec_from_file_location("bench_stress", REPO / "recipes" / "bench_stress.py")
+bench_stress = importlib.util.module_from_spec(spec)
+sys.modules["bench_stress"] = bench_stress  # dataclasses look their module up
+spec.loader.exec_module(bench_stress)
+
+
+def fake_runner(stress, field, level, train, work, frames, size, steps):
+    LR = bench_stress.LevelResult
+    if level == "photo":
+        return LR(stress, level, {"registered_frac": 1.0, "rot_err_deg": 0.05, "mask_iou_min": 0.95}, {})
+    if level == "low":  # poses fail, warned; masks bad and nobody said so
+        return LR(stress, level, {"registered_frac": 0.5, "rot_err_deg": 3.0, "mask_iou_min": 0.5},
+                  {"poses": ["frames 10-20 did not register: too little texture"]})
+    # none: SfM refused with an error; later stages never ran
+    return LR(stress, level, {}, {}, ("poses", "SfM registered 2 of 40 frames"))
+
+
+def test_rows_usable_detected_and_silent():
+    suite = {"texture": ("texture", ["photo", "low", "none"], [], False)}
+    rows = bench_stress.run_suite(suite, quick=True, work=Path("/nonexistent"), runner=fake_runner)
+    by = {(r["level"], r["metric"]): r for r in rows}
+    assert by[("photo", "registered_frac")]["usable"] and by[("photo", "mask_iou_min")]["usable"]
+    low_reg = by[("low", "registered_frac")]
+    assert not low_reg["usable"] and low_reg["detected"] and "texture" in low_reg["message"]
+    low_mask = by[("low", "mask_iou_min")]
+    assert not low_mask["usable"] and not low_mask["detected"]
+    none_reg = by[("none", "registered_frac")]
+    assert none_reg["value"] is None and not none_reg["usable"] and none_reg["detected"]
+    silent = bench_stress.silent_failures(rows)
+    assert [(r["level"], r["metric"]) for r in silent] == [("low", "mask_iou_min")]
+
+
+def test_thresholds_direction():
+    assert bench_stress.is_usable("psnr", 30.0) and not bench_stress.is_usable("psnr", 10.0)
+    assert bench_stress.is_usable("rot_err_deg", 0.1) and not bench_stress.is_usable("rot_err_deg", 5.0)
+    assert not bench_stress.is_usable("state_mae", None)
+
+
+def test_crash_is_a_silent_failure():
+    def crashing(*a, **k):
+        raise ValueError("boom")
+
+    rows = bench_stress.run_suite({"noise": ("noise", [3.0], [], False)}, True, Path("/x"), runner=crashing)
+    assert len(bench_stress.silent_failures(rows)) == 1 and "boom" in rows[0]["message"]

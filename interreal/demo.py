@@ -35,6 +35,8 @@ class DemoConfig:
     steps: int = 0  # 0 = the preset's
     sweep_frames: int = 24
     eval_frames: int = 0  # held-out frames to score (0 = all)
+    eval_scale: float = 1.0  # render scale for the scores (0.5 = a quicker estimate)
+    novel: int = 4  # held-out cameras rendered at state combinations never seen in training
     device: str = "auto"
     rows: list[dict[str, Any]] = field(default_factory=list)
 
@@ -76,7 +78,7 @@ def process_capture(cfg: DemoConfig, video: Path, keyframes: Path | None, labels
     if keyframes is not None:
         q = _mask_quality(ds, capture) if capture is not None else "no truth"
         _row(cfg, "masks", steps.get("masks", {}).get("wall_s", 0.0), q)
-    pq = f"{fig.get('registered')}/{fig.get('total')} registered, reproj {fig.get('reproj_error_px', fig.get('mean_reproj_error', float('nan'))):.2f} px"
+    pq = f"{fig.get('registered')}/{fig.get('total')} registered, reproj {fig.get('mean_reproj_error_px', float('nan')):.2f} px"
     if capture is not None:
         pq += ", " + _pose_quality(ds, capture)
     _row(cfg, "poses", steps.get("poses", {}).get("wall_s", 0.0), pq)
@@ -125,7 +127,7 @@ def evaluate_run(cfg: DemoConfig, run_dir: Path, capture: Path | None) -> dict[s
     t0 = time.perf_counter()
     run = load_run(run_dir, device=cfg.device)
     truth = CaptureTruth(capture, run.views) if capture is not None else None
-    res = evaluate(run, truth, max_frames=cfg.eval_frames)
+    res = evaluate(run, truth, max_frames=cfg.eval_frames, scale=cfg.eval_scale, novel=cfg.novel)
     atomic.write_json(cfg.out / "eval.json", res)
 
     def f(key: str, fmt: str = "{:.3f}") -> str:

@@ -40,7 +40,9 @@ class SfMConfig:
 
     sfm_long_side: int = 1000  # SIFT runs at <= this many pixels on the long side
     max_features: int = 2048  # matching cost grows with the square of this; 2048 vs 4096 changed nothing measurable
-    first_octave: int = -1  # COLMAP's 2x upsampled first octave: 5x lower rotation error at 640x480 than 0
+    first_octave: int | None = None  # None = auto: -1 (COLMAP's 2x upsampled octave) when SIFT sees the frames at
+    # native size (5x lower rotation error at 640x480 than 0), 0 when it downscales them (fox 1600 -> 1000 px:
+    # 2.3x faster and 0.21 vs 0.24 deg from the reference)
     camera_model: str = "SIMPLE_RADIAL"  # or OPENCV
     matcher: str = "auto"  # auto | sequential | exhaustive
     exhaustive_max: int = 40  # auto: exhaustive up to this many images (n^2/2 pairs; sequential beyond)
@@ -229,7 +231,7 @@ def extract(pc, db: Path, image_dir: Path, names: list[str], mask_dir: Path | No
     """SIFT into a fresh database, in chunks (for the progress bar); every chunk reuses the one shared camera."""
     ext = pc.FeatureExtractionOptions(num_threads=cfg.num_threads, use_gpu=False, max_image_size=cfg.sfm_long_side)
     ext.sift.max_num_features = cfg.max_features
-    ext.sift.first_octave = cfg.first_octave
+    ext.sift.first_octave = resolve_octave(cfg, image_dir / names[0])
     if db.exists():
         db.unlink()
     bar = log.bar(len(names), "features") if log else None
@@ -249,6 +251,13 @@ def extract(pc, db: Path, image_dir: Path, names: list[str], mask_dir: Path | No
     with pc.Database.open(str(db)) as d:
         if d.num_cameras() != 1:
             raise StageError(f"feature extraction made {d.num_cameras()} cameras, expected one shared camera")
+
+
+def resolve_octave(cfg: SfMConfig, sample: Path) -> int:
+    """The SIFT first octave: cfg's, else -1 for frames SIFT sees at native size and 0 for downscaled ones."""
+    if cfg.first_octave is not None:
+        return int(cfg.first_octave)
+    return -1 if max(_image_hw(sample)) <= cfg.sfm_long_side else 0
 
 
 def sequential_pairs(n: int, overlap: int, quadratic: bool) -> list[tuple[int, int]]:
@@ -600,7 +609,7 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
             rep.warn("no object masks (DS/masks or DS/sfm_masks): moving parts may corrupt poses; run "
                      "`interreal masks DS --keyframes DIR` first", cause="no-masks")
         fp_feat = fingerprint("features", _files_fp(images), _files_fp(mask_files) if mask_files else None,
-                              cfg.sfm_long_side, cfg.max_features, cfg.first_octave, cfg.camera_model)
+                              cfg.sfm_long_side, cfg.max_features, resolve_octave(cfg, images[0]), cfg.camera_model)
         db = work / "database.db"
         with rep.step("features") as st:
             if state.get("features") == fp_feat and db.exists():

@@ -53,11 +53,13 @@ def extra_args(p) -> None:
     p.add_argument("--run", type=Path, default=None, help="reuse this trained run (its dataset must be a truth dataset)")
     p.add_argument("--capture", type=Path, default=None, help="reuse this capture folder (interreal synth OUT)")
     p.add_argument("--work", type=Path, default=None, help="where capture / dataset / run go (default OUT/ground_work)")
-    p.add_argument("--steps", type=int, default=0, help="training steps (default: 4000 cpu preset, 600 with --quick)")
+    p.add_argument("--steps", type=int, default=0, help="training steps (default: 4000 cpu preset, 300 with --quick)")
     p.add_argument("--preset", default="cpu", help="livescene training preset (default cpu)")
     p.add_argument("--max-minutes", type=float, default=0.0, help="cap the training time (0 = the preset's steps)")
     p.add_argument("--eval-views", type=int, default=None,
-                   help="held-out views to score, spread over the held-out set (default 12, 6 with --quick; 0 = all)")
+                   help="held-out views to score, spread over the held-out set (default 12, 4 with --quick; 0 = all)")
+    p.add_argument("--eval-scale", type=float, default=1.0,
+                   help="render held-out views at this fraction of the dataset size (truth masks: nearest)")
     p.add_argument("--mask-threshold", type=float, default=0.5)
 
 
@@ -68,7 +70,7 @@ def make_capture(work: Path, quick: bool) -> Path:
     if (cap / "gt" / "meta.json").exists():
         return cap
     # quick: the default scene, a shorter clip at half the resolution
-    cfg = SynthConfig(frames=96, width=320, height=240) if quick else SynthConfig()
+    cfg = SynthConfig(frames=64, width=320, height=240) if quick else SynthConfig()
     t0 = time.perf_counter()
     write_capture(cfg, cap)
     print(f"capture: {cfg.frames} frames {cfg.width}x{cfg.height} in {time.perf_counter() - t0:.0f} s -> {cap}")
@@ -86,7 +88,7 @@ def make_run(work: Path, cap: Path, args) -> Path:
 
     if (run / "latest.pt").exists() and (read_report(run, "train") or {}).get("status") == "ok":
         return run  # a finished run; an interrupted one is resumed below
-    steps = args.steps or (600 if args.quick else 4000)
+    steps = args.steps or (300 if args.quick else 4000)
     cmd = [sys.executable, "-m", "livescene", "train", str(ds), "--out", str(run), "--preset", args.preset,
            "--steps", str(steps), "--device", "cpu"]
     if args.max_minutes:
@@ -98,7 +100,7 @@ def make_run(work: Path, cap: Path, args) -> Path:
     return run
 
 
-def heldout_views(run, cap_states: np.ndarray, count: int) -> list[dict]:
+def heldout_views(run, cap_states: np.ndarray, count: int, scale: float = 1.0) -> list[dict]:
     """Render `count` held-out views (spread; 0 = all) once at the run's learned states for the frame (what the
     run reconstructs, as `livescene ground --views` renders) and once at the simulator's truth states."""
     from tqdm import tqdm
@@ -117,8 +119,14 @@ def heldout_views(run, cap_states: np.ndarray, count: int) -> list[dict]:
         _, truth = load_frame(views, i)  # index map at the working size (0 = background)
         if truth is None:
             truth = onehot_to_index(views.dataset.load_mask(frame))
-        learned = render_view(run, views.c2w_gl[i], views.intrinsics[i], None, time=float(views.times[i]))
-        at_truth = render_view(run, views.c2w_gl[i], views.intrinsics[i], cap_states[frame.index])
+        intr = views.intrinsics[i]
+        if scale != 1.0:
+            import cv2
+
+            intr = intr.scaled(max(8, round(intr.w * scale)), max(8, round(intr.h * scale)))
+            truth = cv2.resize(truth, (intr.w, intr.h), interpolation=cv2.INTER_NEAREST_EXACT)
+        learned = render_view(run, views.c2w_gl[i], intr, None, time=float(views.times[i]))
+        at_truth = render_view(run, views.c2w_gl[i], intr, cap_states[frame.index])
         out.append({"fid": frame.fid, "probs": learned["probs"], "probs_truth_states": at_truth["probs"],
                     "truth": truth, "state_err": float(np.abs(learned["states"] - cap_states[frame.index]).mean())})
     return out
@@ -132,7 +140,8 @@ def view_iou(views: list[dict], obj: int, expected: int, thr: float, key: str = 
     return (float(np.mean(ious)) if ious else None), len(ious)
 
 
-def grounding_records(run_dir: Path, cap: Path, thr: float, data: str, count: int) -> tuple[list[dict], dict]:
+def grounding_records(run_dir: Path, cap: Path, thr: float, data: str, count: int,
+                      scale: float = 1.0) -> tuple[list[dict], dict]:
     from interreal.synth import Capture
     from livescene.language import get_encoder, ground_query
     from livescene.language.grounding import check_run_has_masks
@@ -143,7 +152,7 @@ def grounding_records(run_dir: Path, cap: Path, thr: float, data: str, count: in
     check_run_has_masks(run)
     names = run.names
     t0 = time.perf_counter()
-    views = heldout_views(run, np.asarray(capture.states), count)
+    views = heldout_views(run, np.asarray(capture.states), count, scale)
     render_s = time.perf_counter() - t0
     enc = get_encoder()
     records = []
@@ -165,6 +174,7 @@ def grounding_records(run_dir: Path, cap: Path, thr: float, data: str, count: in
                             "iou_truth_states": None if at_truth is None else round(at_truth, 4), "views": n,
                             "retrieval_ms": round(ms, 2)})
     meta = {"heldout_views": len(views), "render_s_per_view": round(render_s / max(len(views), 1) / 2, 3),
+            "eval_size": list(views[0]["truth"].shape[::-1]) if views else None,
             "heldout_state_mae": round(float(np.mean([v["state_err"] for v in views])), 4),
             "run": str(run_dir), "run_step": run.step, "objects": names}
     return records, meta
@@ -258,8 +268,8 @@ def main() -> int:
         cap = args.capture or make_capture(work, args.quick)
         run_dir = make_run(work, cap, args)
     data = capture_label(cap)
-    count = args.eval_views if args.eval_views is not None else (6 if args.quick else 12)
-    records, meta = grounding_records(run_dir, cap, args.mask_threshold, data, count)
+    count = args.eval_views if args.eval_views is not None else (4 if args.quick else 12)
+    records, meta = grounding_records(run_dir, cap, args.mask_threshold, data, count, args.eval_scale)
     records += text_only_records("synth-10kinds-text")
     summ = summary(records)
     write_results(args.out, NAME, records, summary=summ, wall_s=round(time.perf_counter() - t0, 1),

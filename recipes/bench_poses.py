@@ -217,7 +217,7 @@ def plot(runs: list[dict], path: Path) -> None:
     for r in runs:
         x, y = r["wall_s"], max(r["rot_err_deg_median"], 1e-4)
         mk = "o" if r["data"] == "fox" else "s"
-        ax.scatter([x], [y], marker=mk, s=50, color="tab:red" if r["variant"] == "baseline" else "tab:blue")
+        ax.scatter([x], [y], marker=mk, s=50, color="tab:red" if r["variant"].startswith("baseline") else "tab:blue")
         ax.annotate(f"{r['data']}/{r['variant']} ({r['registered']}/{r['total']})", (x, y), fontsize=7,
                     xytext=(4, 4), textcoords="offset points")
     ax.set_xscale("log")

@@ -148,6 +148,7 @@ def train_and_eval(ds: Path, cap: Path, run_dir: Path, minutes: float, box: list
             "eval_minutes": round((time.perf_counter() - t1) / 60, 2), "steps": summary["steps"],
             "psnr": res["psnr"], "ssim": res["ssim"], "state_mae": res.get("state_mae"),
             "state_mae_max": res.get("state_mae_max"), "novel_state_psnr": res.get("novel_state_psnr"),
+            "true_state_sim_psnr": res.get("true_state_sim_psnr"),
             "mask_iou": res.get("mask_iou"), "depth_l1": res.get("depth_l1"), "params": summary["params"],
             "reject_threshold": res["reject_threshold"], "eval_scale": EVAL_SCALE, "eval_frames": res["held_out_frames"],
             "curve": curve}
@@ -251,11 +252,26 @@ def main() -> int:
         write_results(args.out, "train", runs, quick=quick, device=device, box=box, threads=threads)
         charts(args.out / "train.png", runs)
 
+    if "main-eval" in only:  # re-evaluate an existing main run (e.g. after changing the evaluation)
+        from livescene.evaluate import CaptureTruth, evaluate
+        from livescene.trainer import load_run
+
+        old = [r for r in json.loads(results_path.read_text())["runs"] if r["variant"] == "main"] if results_path.exists() else []
+        run = load_run(args.out / "runs" / "main", device=device)
+        res = evaluate(run, CaptureTruth(cap, run.views), max_frames=eval_frames, scale=EVAL_SCALE, novel=NOVEL,
+                       progress=False)
+        runs = [r for r in runs if r["variant"] != "main"]
+        rec = {**(old[0] if old else {}), **{k: res.get(k) for k in ("psnr", "ssim", "state_mae", "novel_state_psnr",
+                                                                      "true_state_sim_psnr", "mask_iou", "depth_l1")}}
+        rec.pop("variant", None)
+        rec.pop("data", None)
+        rec.pop("label_fraction", None)
+        record("main", rec)
     if "main" in only:
         record("main", train_and_eval(ds, cap, args.out / "runs" / "main", minutes, box, device, eval_frames))
     if "reject" in only:
         for s in (0.0, 0.5):
-            record(f"reject s={s:g}", train_and_eval(ds, cap, args.out / "runs" / f"reject_{s:g}", sweep_minutes * 2,
+            record(f"reject s={s:g}", train_and_eval(ds, cap, args.out / "runs" / f"reject_{s:g}", sweep_minutes * 1.5,
                                                      box, device, min(eval_frames or 4, 4),
                                                      [*args.sweep_set, f"model.reject_threshold={s}"]))
     if "labels" in only:

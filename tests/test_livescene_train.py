@@ -244,3 +244,14 @@ def test_cli_help_has_examples(capsys):
         with pytest.raises(SystemExit):
             main([cmd, "--help"])
         assert "examples:" in capsys.readouterr().out
+
+
+@pytest.mark.gpu
+def test_tiny_training_on_cuda(tmp_path):
+    ds = toy_dataset(tmp_path / "ds", n_frames=9, size=(24, 18))
+    cfg = load_preset("tiny")
+    cfg.steps, cfg.eval_every, cfg.ckpt_every = 30, 0, 0
+    summary = train(ds, tmp_path / "run", cfg, device="cuda", show_progress=False)
+    assert summary["steps"] == 30
+    run = load_run(tmp_path / "run", device="cuda")
+    assert run.device.type == "cuda" and next(run.model.parameters()).is_cuda

@@ -161,19 +161,21 @@ def test_synth_capture_iou(tmp_path):
 
     from interreal.synth import Capture, SynthConfig, write_capture
 
-    cap_dir = write_capture(SynthConfig(frames=40, width=320, height=240, keyframe_every=20), tmp_path / "cap",
+    # half the default capture's length at a quarter of its pixels: per-frame motion stays realistic
+    n = 150
+    cap_dir = write_capture(SynthConfig(frames=n, width=320, height=240, keyframe_every=60), tmp_path / "cap",
                             progress=False)
     cap = Capture.open(cap_dir)
     ds = tmp_path / "ds"
     with av.open(str(cap_dir / "video.mp4")) as c:
         for i, fr in enumerate(c.decode(video=0)):
             atomic.write_image(ds / "images" / f"{frame_name(i)}.png", fr.to_ndarray(format="rgb24"))
-    truths = [cv2.imread(str(cap_dir / "gt" / "instance" / f"{fid_of_index(i)}.png"), 0) for i in range(40)]
+    truths = [cv2.imread(str(cap_dir / "gt" / "instance" / f"{fid_of_index(i)}.png"), 0) for i in range(n)]
     propagate(ds, cap_dir / "annotations" / "keyframes", preview="none", progress=False)
     for k, name in enumerate(cap.names):
         vals = [iou(np.load(ds / "masks" / f"{fid_of_index(i)}.npy")[..., k] & (truths[i] != 255),
-                    truths[i] == k + 1) for i in range(40) if i not in cap.keyframes]
-        assert np.mean(vals) > 0.85, (name, np.mean(vals))
+                    truths[i] == k + 1) for i in range(n) if i not in cap.keyframes]
+        assert np.mean(vals) > 0.80, (name, np.mean(vals))  # measured 0.84 (door) at this size; 0.91-0.93 at 640x480
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -322,5 +324,14 @@ def test_cli_suggest(small, capsys):
     line = next(ln for ln in out.splitlines() if ln.startswith("annotate next:"))
     first = line.split(":")[1].split(",")[0].strip()
     assert int(first) >= 3, line  # far from the only keyframe (00000), where the chain is least checked
-    assert main(["masks", str(ds), "--keyframes", str(tmp_missing := ds / "nope")]) == 2
+    assert main(["masks", str(ds), "--keyframes", str(ds / "nope")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flow", ["rlof", "farneback"])
+def test_other_flow_methods(tmp_path, flow):
+    images, truths = toy_sequence(n=8)
+    ds = make_ds(tmp_path, images)
+    write_keys(tmp_path / "keys", truths, [0, 7], ["red disk", "blue square"])
+    propagate(ds, tmp_path / "keys", flow=flow, preview="none", progress=False)
+    assert min(mean_iou(ds, truths, [0, 7], 2)) > 0.8

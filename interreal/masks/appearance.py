@@ -35,6 +35,9 @@ class ColourModel:
     def __init__(self, hist: np.ndarray, cfg: AppearanceConfig):
         self.hist = hist  # (K+1, bins^3) float32, each row sums to 1
         self.cfg = cfg
+        # per colour bin: likelihood of each label normalised over labels, to the configured power
+        table = hist.T / hist.T.sum(1, keepdims=True)
+        self.table = np.ascontiguousarray(table ** cfg.weight if cfg.weight != 1.0 else table, dtype=np.float32)
 
     @classmethod
     def fit(cls, image: np.ndarray, soft: np.ndarray, known: np.ndarray, cfg: AppearanceConfig) -> "ColourModel":
@@ -59,7 +62,4 @@ class ColourModel:
 
     def ratio(self, image: np.ndarray) -> np.ndarray:
         """(h, w, K+1) likelihood of each label, normalised over labels, raised to the configured weight."""
-        lik = self.hist[:, quantize(image, self.cfg.bins)]  # (K+1, h, w)
-        lik = np.moveaxis(lik, 0, -1)
-        lik = lik / lik.sum(-1, keepdims=True)
-        return lik ** self.cfg.weight if self.cfg.weight != 1.0 else lik
+        return self.table[quantize(image, self.cfg.bins)]

@@ -1,7 +1,7 @@
 """Keyframe-to-keyframe propagation of soft object maps with dense flow.
 
 Between two keyframes a and b each frame gets two predictions: one warped forward from a, one warped
-backward from b. Each carries a trust map (forward-backward consistency accumulated along its chain, zero
+backward from b. Each carries a trust map (the weakest forward-backward consistency along its chain, zero
 where the source left the image). They are fused by trust and temporal distance, refined on the full-size
 image with a guided filter, and turned into exclusive labels by argmax (background last). Keyframes re-anchor
 every chain, so drift never spans more than one gap. Before the first keyframe only the backward chain
@@ -78,6 +78,10 @@ class FrameCache:
             self._work[pos] = img
         return self._work[pos]
 
+    def peek(self, pos: int) -> np.ndarray | None:
+        """The full-size image if it is still cached (no load)."""
+        return self._full.get(pos)
+
     def keep_only(self, keep: set[int]) -> None:
         for d in (self._full, self._work):
             for k in [k for k in d if k not in keep]:
@@ -147,8 +151,11 @@ class Propagator:
         trust = st.trust
         if self.cfg.rigid > 0:
             warped, trust = self._rigid(soft, st, warped, trust)
-        acc = st.warp(acc)  # (trust accumulated along the chain, 'seen': the chain started inside the anchor)
-        acc[..., 0] *= trust
+        # (weakest-link trust along the chain, 'seen': the chain started inside the anchor's annotation).
+        # A minimum rather than a product: a product decays to nothing over a long gap even on perfect
+        # tracking, and then the temporal weights alone decide the fusion.
+        acc = st.warp(acc)
+        acc[..., 0] = np.minimum(acc[..., 0], trust)
         r = self.cfg.fill_radius
         if r > 0:
             k = (2 * r + 1, 2 * r + 1)
@@ -158,12 +165,12 @@ class Propagator:
             prior[-1] = 1.0  # nothing trusted nearby (e.g. a border that just came into view): background
             fill = (num + 1e-3 * prior) / (den[..., None] + 1e-3)
             warped = trust[..., None] * warped + (1 - trust[..., None]) * fill
-        outside = warped.sum(-1) < 1e-3
+        outside = chsum(warped)[..., 0] < 1e-3
         warped[outside, -1] = 1.0  # nothing to pull from (left the image): background until a keyframe says otherwise
         image = self.cache.work(dst)
         if model is not None:
             warped = warped * model.ratio(image)
-            warped /= warped.sum(-1, keepdims=True)
+            warped /= chsum(warped)
         soft = self.refine(warped, image)
         return soft, acc, trust
 
@@ -197,21 +204,21 @@ class Propagator:
             out[..., k] = lam * moved + (1 - lam) * warped[..., k]
             region = cv2.dilate(((moved > 0.05) | (warped[..., k] > 0.05)).astype(np.uint8), kernel, iterations=2) > 0
             trust = np.where(region, np.maximum(trust, lam), trust)
-        objects = out[..., :-1].sum(-1)
+        objects = chsum(np.ascontiguousarray(out[..., :-1]))[..., 0]
         out[..., -1] = np.clip(1.0 - objects, 0.0, None)
-        out /= np.maximum(out.sum(-1, keepdims=True), 1e-6)
+        out /= np.maximum(chsum(out), 1e-6)
         return out, trust.astype(np.float32)
 
     def refine(self, soft: np.ndarray, image: np.ndarray) -> np.ndarray:
         cfg = self.cfg
         if cfg.refine_radius > 0:
-            guide = image.astype(np.float32) / 255.0
+            guide = image.astype(np.float32) / 255.0  # colour guide: grey loses edges between equally bright colours
             soft = cv2.ximgproc.guidedFilter(guide, soft, cfg.refine_radius, cfg.refine_eps)
             soft = soft.reshape(guide.shape[0], guide.shape[1], -1)
         soft = np.clip(soft, 1e-4, None)
         if cfg.sharpen != 1.0:
             soft = soft ** cfg.sharpen
-        return (soft / soft.sum(-1, keepdims=True)).astype(np.float32)
+        return (soft / chsum(soft)).astype(np.float32, copy=False)
 
     # -- output ------------------------------------------------------------------------------------------
     def labels_full(self, soft: np.ndarray, pos: int) -> np.ndarray:
@@ -223,7 +230,8 @@ class Propagator:
         if r > 0:
             grey = cv2.cvtColor(self.cache.full(pos), cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0
             scale = max(1, round(w / self.wsize[0]))
-            soft = cv2.ximgproc.guidedFilter(grey, soft, r * scale, self.cfg.refine_eps).reshape(h, w, -1)
+            sub = 0.5 if w >= 2 * self.wsize[0] else 1.0  # fast guided filter only when full size is much larger
+            soft = cv2.ximgproc.guidedFilter(grey, soft, r * scale, self.cfg.refine_eps, dDepth=-1, scale=sub).reshape(h, w, -1)
         return _argmax_labels(soft)
 
     # -- the whole sequence --------------------------------------------------------------------------------
@@ -266,9 +274,10 @@ class Propagator:
         self._flows.clear()
         fwd: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         soft, acc, model = self._start(a, start_a)
+        store = np.float32 if b - a <= 100 else np.float16  # long gaps: halve the memory of the stored chain
         for t in range(a + 1, b):
             soft, acc, trust = self.advance(soft, acc, t - 1, t, model)
-            fwd[t] = (soft.astype(np.float16), acc.astype(np.float16), trust.astype(np.float16))
+            fwd[t] = (soft.astype(store), acc.astype(store), trust.astype(store))
         if b > a + 1 and (start_b[1] < 1).any():
             s, c, _ = self.advance(soft, acc, b - 1, b, model)
             arrivals[b].append((s, c))
@@ -276,7 +285,7 @@ class Propagator:
         span = b - a
         for t in range(b - 1, a, -1):
             soft, acc, trust = self.advance(soft, acc, t + 1, t, model)
-            sf, cf, tf = (x.astype(np.float32) for x in fwd.pop(t))
+            sf, cf, tf = (x.astype(np.float32, copy=False) for x in fwd.pop(t))
             if self.cfg.fusion:
                 # a chain whose pixel came from outside its keyframe's view (or an unannotated part) knows
                 # nothing there: weight zero, whatever its distance
@@ -309,6 +318,14 @@ class Propagator:
                 fill = np.zeros_like(labels)
             labels[unknown] = fill[unknown]
         return FrameResult(k, labels, keyframe=True, dist=(0, 0))
+
+
+def chsum(x: np.ndarray) -> np.ndarray:
+    """Per-pixel sum over the last axis, (h, w, C) -> (h, w, 1); numpy's reduction over a short last axis is slow."""
+    c = x.shape[-1]
+    if c <= 4 and x.dtype == np.float32:
+        return cv2.transform(x, np.ones((1, c), np.float32))[..., None] if c > 1 else x.copy()
+    return x.sum(-1, keepdims=True)
 
 
 def _argmax_labels(soft: np.ndarray) -> np.ndarray:

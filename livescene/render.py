@@ -15,6 +15,7 @@ import torch
 
 from interreal import atomic
 from interreal.dataset import Intrinsics
+from interreal.video import write_video  # noqa: F401 - part of this module's API
 
 from .data import camera_rays, pixel_directions
 from .errors import LiveSceneError
@@ -184,27 +185,6 @@ def colorize_depth(depth: np.ndarray) -> np.ndarray:
     lo, hi = np.percentile(depth, 1), np.percentile(depth, 99)
     d = np.clip((depth - lo) / max(hi - lo, 1e-6), 0, 1)
     return (matplotlib.colormaps["turbo"](1 - d)[..., :3] * 255).astype(np.uint8)
-
-
-def write_video(path: Path, frames: list[np.ndarray], fps: int = 15) -> None:
-    """H.264 MP4 via PyAV, written to a temporary file then renamed."""
-    import av
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.mp4")
-    h, w = frames[0].shape[:2]
-    with av.open(str(tmp), "w") as container:
-        stream = container.add_stream("h264", rate=fps)
-        stream.width, stream.height = w - w % 2, h - h % 2
-        stream.pix_fmt = "yuv420p"
-        for f in frames:
-            vf = av.VideoFrame.from_ndarray(np.ascontiguousarray(f[: stream.height, : stream.width]), format="rgb24")
-            for pkt in stream.encode(vf):
-                container.mux(pkt)
-        for pkt in stream.encode():
-            container.mux(pkt)
-    tmp.replace(path)
 
 
 # ----------------------------------------------------------------------------------------------------------------

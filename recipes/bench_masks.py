@@ -128,13 +128,21 @@ def run_one(data: str, ds: Path, gts, names, keys: list[int], every: int, varian
 
 
 def main() -> int:
-    args = bench_args("masks", __doc__.splitlines()[0], lambda p: p.add_argument(
-        "--no-synth", action="store_true", help="DAVIS only"))
+    def extra(p):
+        p.add_argument("--no-synth", action="store_true", help="DAVIS only")
+        p.add_argument("--variants", default="", help="comma-separated subset of variants to run (default: all), "
+                       "e.g. 'ours' to skip the slow baseline rows while iterating")
+    args = bench_args("masks", __doc__.splitlines()[0], extra)
     cv2.setNumThreads(THREADS)
     work = args.out / "_masks_work"
     limit = 20 if args.quick else None
     runs: list[dict] = []
     vs = variants(args.quick)
+    if args.variants:
+        unknown = set(args.variants.split(",")) - set(vs)
+        if unknown:
+            raise SystemExit(f"unknown variant(s) {sorted(unknown)}; choose from {sorted(vs)}")
+        vs = {k: v for k, v in vs.items() if k in args.variants.split(",")}
     for seq in DAVIS:
         ds, gts, names = davis_dataset(seq, work, limit)
         for every in (0, 10):

@@ -28,55 +28,22 @@ from pathlib import Path
 import numpy as np
 
 from interreal import atomic
-from interreal.conventions import fid_of_index, opencv_to_opengl
+from interreal.conventions import opencv_to_opengl
 from interreal.dataset import load_dataset, load_transforms
 from interreal.frames import extract_frames
 from interreal.paths import require_shared
-from interreal.sfm import SfMConfig, compare_poses, estimate_poses, rec_poses, refine_intrinsics
+from interreal.scoring import compare_poses
+from interreal.sfm import SfMConfig, estimate_poses, rec_poses, refine_intrinsics
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # data
 # ----------------------------------------------------------------------------------------------------------------
 def synth_capture(out: Path, frames: int, size: tuple[int, int], seed: int = 0) -> Path:
-    """A simulated capture (video.mp4, gt/cameras.json, gt/instance/); `write_capture` when the simulator has it."""
-    from interreal.synth import SynthConfig
+    """A simulated capture (video.mp4, gt/cameras.json, gt/instance/, annotations/)."""
+    from interreal.synth import SynthConfig, write_capture
 
-    cfg = SynthConfig(frames=frames, width=size[0], height=size[1], seed=seed)
-    try:
-        from interreal.synth import write_capture
-    except (ImportError, AttributeError):
-        write_capture = None
-    if write_capture is not None:
-        write_capture(cfg, out)
-        return out
-    return render_capture(cfg, out)
-
-
-def render_capture(cfg, out: Path) -> Path:
-    """Fallback when `write_capture` is not there yet: render with the public Scene API and encode with PyAV."""
-    import av
-
-    from interreal.synth import build_scene
-
-    scene = build_scene(cfg)
-    poses = scene.camera_path()
-    states = scene.states()
-    (out / "gt" / "instance").mkdir(parents=True, exist_ok=True)
-    with av.open(str(out / "video.mp4"), "w") as c:
-        s = c.add_stream("libx264", rate=int(cfg.fps))
-        s.width, s.height, s.pix_fmt = cfg.width, cfg.height, "yuv420p"
-        s.options = {"crf": "18"}
-        for i in range(len(poses)):
-            r = scene.render(poses[i], states[i], frame=i)
-            atomic.write_image(out / "gt" / "instance" / f"{fid_of_index(i)}.png", r.instance)
-            for p in s.encode(av.VideoFrame.from_ndarray(r.rgb, format="rgb24")):
-                c.mux(p)
-        for p in s.encode():
-            c.mux(p)
-    atomic.write_json(out / "gt" / "cameras.json", {
-        "intrinsics": scene.intrinsics.to_json(), "fps": cfg.fps,
-        "frames": [{"index": i, "transform_matrix": poses[i].tolist()} for i in range(len(poses))]})
+    write_capture(SynthConfig(frames=frames, width=size[0], height=size[1], seed=seed), out, progress=False)
     return out
 
 

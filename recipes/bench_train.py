@@ -62,28 +62,10 @@ def make_dataset(cap: Path, out: Path) -> Path:
 
 
 def depth_box(cap_dir: Path, every: int = 10) -> list[float]:
-    """World box of the surfaces the capture saw (depth maps back-projected), 0.5-99.5 percentiles, 5 % pad."""
-    from interreal.conventions import opengl_to_opencv
     from interreal.synth import Capture
+    from interreal.synth.truth import surface_box
 
-    cap = Capture.open(cap_dir)
-    intr = cap.intrinsics
-    pts = []
-    for i in range(0, len(cap), every):
-        d = cap.depth(i)
-        h, w = d.shape
-        it = intr.scaled(w, h)
-        ys, xs = np.mgrid[0:h:4, 0:w:4]
-        z = d[ys, xs]
-        ok = z > 0
-        x = (xs[ok] + 0.5 - it.cx) / it.fl_x * z[ok]
-        y = (ys[ok] + 0.5 - it.cy) / it.fl_y * z[ok]
-        c2w = opengl_to_opencv(cap.poses[i])
-        pts.append(np.stack([x, y, z[ok]], -1) @ c2w[:3, :3].T + c2w[:3, 3])
-    p = np.concatenate(pts)
-    lo, hi = np.percentile(p, 0.5, 0), np.percentile(p, 99.5, 0)
-    pad = 0.05 * (hi - lo)
-    return [float(v) for v in np.concatenate([lo - pad, hi + pad])]
+    return surface_box(Capture.open(cap_dir), every)
 
 
 def relabel(ds: Path, cap: Path, fraction: float, out: Path) -> Path:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import av
@@ -14,7 +13,7 @@ import pytest
 from interreal import cli
 from interreal.errors import InputError
 from interreal.frames import extract_frames
-from interreal.ingest import RawFolderSource, VideoSource, _frame_rotation, open_source, sniff
+from interreal.ingest import RawFolderSource, _frame_rotation, open_source, sniff
 from interreal.paths import require_shared
 
 

@@ -4,7 +4,6 @@ learned states follow the labels, official layouts load, rendering at a new stat
 from __future__ import annotations
 
 import json
-import shutil
 import sys
 from pathlib import Path
 
@@ -187,8 +186,10 @@ def test_eval_with_truth(trained, tmp_path):
         def __init__(self):
             self.states = states
 
-        def render(self, c2w, st, intr):
-            return scene.render(c2w, st, intr)[0]
+        metres_per_unit = 1.0
+
+        def render(self, i, st, intr):  # frame i's true camera (here the dataset's own)
+            return scene.render(run.views.c2w_gl[i], st, intr)[0]
 
         def depth(self, i, intr):
             return scene.render(run.views.c2w_gl[i], states[i], intr)[1]

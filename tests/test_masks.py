@@ -335,3 +335,41 @@ def test_other_flow_methods(tmp_path, flow):
     write_keys(tmp_path / "keys", truths, [0, 7], ["red disk", "blue square"])
     propagate(ds, tmp_path / "keys", flow=flow, preview="none", progress=False)
     assert min(mean_iou(ds, truths, [0, 7], 2)) > 0.8
+
+
+def jump_clip(n: int = 11, w: int = 128, h: int = 96, jump_at: int = 7) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """A red disk on static grey texture that jumps 56 px between frames jump_at-1 and jump_at.
+
+    Flow cannot follow the jump, so each chain is right on its own side of it and confidently wrong (flow is
+    consistent: the background just stays put) on the other side, where it keeps the disk at its old place.
+    """
+    rng = np.random.default_rng(0)
+    bg = cv2.resize(rng.integers(60, 200, (h // 4, w // 4), np.uint8), (w, h), interpolation=cv2.INTER_NEAREST)
+    bg = np.repeat(cv2.GaussianBlur(bg, (3, 3), 0)[..., None], 3, -1)
+    images, truths = [], []
+    for t in range(n):
+        m = np.zeros((h, w), np.uint8)
+        cv2.circle(m, (round(28 + 1.5 * t + (56 if t >= jump_at else 0)), 48), 14, 1, -1)
+        im = bg.copy()
+        im[m > 0] = (220, 30, 30)
+        images.append(im)
+        truths.append(m)
+    return images, truths
+
+
+def test_fusion_colour_vote_settles_disagreeing_chains():
+    """Two confident chains that disagree: the one whose labels fit the keyframes' colours wins the region."""
+    from interreal.masks.track import Propagator, TrackConfig
+
+    images, truths = jump_clip()
+
+    def fused(vote: float) -> dict[int, float]:
+        p = Propagator(lambda i: images[i], len(images), (128, 96), 1, TrackConfig(vote=vote))
+        out = {r.pos: r for r in p.run({0: truths[0], 10: truths[10]})}
+        return {t: iou(out[t].labels == 1, truths[t] > 0) for t in range(1, 10)}
+
+    with_vote, without = fused(8.0), fused(0.0)
+    # frame 6: the backward chain (4 frames away, outweighing the forward chain's 6) keeps the disk where it
+    # lands after the jump; without the vote it wins, with the vote the red disk's colours win
+    assert without[6] < 0.2 and without[5] < 0.7, without
+    assert min(with_vote.values()) > 0.9, with_vote

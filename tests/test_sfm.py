@@ -11,38 +11,19 @@ import numpy as np
 import pytest
 
 from interreal import atomic, cli
-from interreal.conventions import fid_of_index
 from interreal.dataset import load_dataset, validate
 from interreal.errors import InputError, StageError
 from interreal.frames import extract_frames
-from interreal.sfm import (_rot_between, apply_similarity, compare_poses, estimate_poses, estimate_up,
-                           orientation_transform, umeyama)
+from interreal.scoring import compare_poses, umeyama
+from interreal.sfm import _rot_between, apply_similarity, estimate_poses, estimate_up, orientation_transform
 
 
 # ------------------------------------------------------------------------------------------------ a simulated capture
 def render_capture(out: Path, frames: int = 24, size=(320, 240), seed: int = 0) -> Path:
-    """video.mp4 + gt/cameras.json + gt/instance/ rendered with the simulator's public Scene API."""
-    import av
+    """A simulated capture: video.mp4 + gt/cameras.json + gt/instance/ (+ depth, annotations)."""
+    from interreal.synth import SynthConfig, write_capture
 
-    from interreal.synth import SynthConfig, build_scene
-
-    cfg = SynthConfig(frames=frames, width=size[0], height=size[1], seed=seed)
-    scene = build_scene(cfg)
-    poses, states = scene.camera_path(), scene.states()
-    (out / "gt" / "instance").mkdir(parents=True, exist_ok=True)
-    with av.open(str(out / "video.mp4"), "w") as c:
-        s = c.add_stream("libx264", rate=30)
-        s.width, s.height, s.pix_fmt = size[0], size[1], "yuv420p"
-        s.options = {"crf": "18"}
-        for i in range(frames):
-            r = scene.render(poses[i], states[i], frame=i)
-            atomic.write_image(out / "gt" / "instance" / f"{fid_of_index(i)}.png", r.instance)
-            for p in s.encode(av.VideoFrame.from_ndarray(r.rgb, format="rgb24")):
-                c.mux(p)
-        for p in s.encode():
-            c.mux(p)
-    atomic.write_json(out / "gt" / "cameras.json", {"intrinsics": scene.intrinsics.to_json(), "frames": [
-        {"index": i, "transform_matrix": poses[i].tolist()} for i in range(frames)]})
+    write_capture(SynthConfig(frames=frames, width=size[0], height=size[1], seed=seed), out, progress=False)
     return out
 
 

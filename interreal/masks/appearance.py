@@ -32,8 +32,9 @@ def quantize(image: np.ndarray, bins: int) -> np.ndarray:
 class ColourModel:
     """Normalised colour histograms, one per label (objects..., background last)."""
 
-    def __init__(self, hist: np.ndarray, cfg: AppearanceConfig):
+    def __init__(self, hist: np.ndarray, cfg: AppearanceConfig, counts: np.ndarray | None = None):
         self.hist = hist  # (K+1, bins^3) float32, each row sums to 1
+        self.counts = np.ones(len(hist)) if counts is None else counts  # (K+1,) pixels each row was learned on
         self.cfg = cfg
         # per colour bin: likelihood of each label normalised over labels, to the configured power
         table = hist.T / hist.T.sum(1, keepdims=True)
@@ -56,10 +57,24 @@ class ColourModel:
         near = cv2.dilate(objects, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
         bg = ok & (labels == c - 1)
         hist[c - 1] = np.bincount(bins[(bg & near).ravel()], minlength=n) + 0.1 * np.bincount(bins[bg.ravel()], minlength=n)
+        counts = hist.sum(1)
         hist += cfg.prior
         hist /= hist.sum(1, keepdims=True)
-        return cls(hist.astype(np.float32), cfg)
+        return cls(hist.astype(np.float32), cfg, counts)
 
     def ratio(self, image: np.ndarray) -> np.ndarray:
         """(h, w, K+1) likelihood of each label, normalised over labels, raised to the configured weight."""
         return self.table[quantize(image, self.cfg.bins)]
+
+
+def joint_log_table(models: list[ColourModel]) -> np.ndarray:
+    """(bins^3, K+1) log-likelihood of each colour under each label, pooling the keyframes at both ends of a gap.
+
+    Pooling matters for a part that changes appearance between its keyframes (a door seen face-on in one and
+    edge-on in the other): either view is evidence of the label's colours, equally. A keyframe where the
+    label is absent does not count, so it does not halve that object's likelihood.
+    """
+    w = (np.stack([m.counts for m in models]) > 0).astype(np.float64) + 1e-6  # (n_models, K+1)
+    w /= w.sum(0, keepdims=True)
+    hist = sum(wi[:, None] * m.hist for wi, m in zip(w, models))
+    return np.ascontiguousarray(np.log(hist.T), dtype=np.float32)

@@ -102,6 +102,11 @@ def _mapping_from_labelme(by_fid: dict[str, Path]) -> dict[int, str]:
     return dict(enumerate(names))
 
 
+def same_aspect(a: tuple[int, int], b: tuple[int, int], tol: float = 0.01) -> bool:
+    """Whether two (w, h) sizes are the same picture at another resolution (aspect ratios within `tol`)."""
+    return abs((a[0] / a[1]) / (b[0] / b[1]) - 1.0) <= tol
+
+
 def _read_png(path: Path, size: tuple[int, int], names: list[str], dir_map: dict[int, str]) -> np.ndarray:
     data = np.fromfile(str(path), dtype=np.uint8)
     img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
@@ -116,8 +121,11 @@ def _read_png(path: Path, size: tuple[int, int], names: list[str], dir_map: dict
     if img.dtype != np.uint8:
         raise InputError(f"{path}: {img.dtype} pixels; keyframe masks are 8-bit index maps")
     if (img.shape[1], img.shape[0]) != size:
-        raise InputError(f"{path}: mask is {img.shape[1]}x{img.shape[0]} but the frames are {size[0]}x{size[1]}; "
-                         f"draw the mask on the extracted frame DS/images/")
+        if not same_aspect((img.shape[1], img.shape[0]), size):
+            raise InputError(f"{path}: mask is {img.shape[1]}x{img.shape[0]} but the frames are {size[0]}x{size[1]} "
+                             f"(another aspect ratio); draw the mask on the extracted frame DS/images/")
+        # drawn on the source video, frames extracted smaller (or larger): same picture, other resolution
+        img = cv2.resize(img, size, interpolation=cv2.INTER_NEAREST_EXACT)
     values = set(np.unique(img).tolist()) - {0, UNANNOTATED}
     bad = sorted(v for v in values if v > len(names))
     if bad:
@@ -152,8 +160,12 @@ def _read_labelme(path: Path, size: tuple[int, int], names: list[str], image) ->
     doc = _labelme(path)
     w, h = size
     dw, dh = doc.get("imageWidth"), doc.get("imageHeight")
+    scale = (1.0, 1.0)
     if dw is not None and dh is not None and (int(dw), int(dh)) != (w, h):
-        raise InputError(f"{path}: drawn on a {dw}x{dh} image but the frames are {w}x{h}; annotate DS/images/")
+        if not same_aspect((int(dw), int(dh)), (w, h)):
+            raise InputError(f"{path}: drawn on a {dw}x{dh} image but the frames are {w}x{h} (another aspect "
+                             f"ratio); annotate DS/images/")
+        scale = (w / int(dw), h / int(dh))  # drawn on the source video: scale the shapes to the frames
     polys = np.zeros((len(names), h, w), bool)
     boxes: list[tuple[int, tuple[int, int, int, int]]] = []
     for i, shape in enumerate(doc["shapes"]):
@@ -164,7 +176,7 @@ def _read_labelme(path: Path, size: tuple[int, int], names: list[str], image) ->
         k = names.index(label)
         kind = shape.get("shape_type", "polygon") or "polygon"
         try:
-            pts = np.asarray(shape["points"], dtype=np.float64).reshape(-1, 2)
+            pts = np.asarray(shape["points"], dtype=np.float64).reshape(-1, 2) * np.asarray(scale)
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"{path}: shape {i} ('{label}') has no usable points ({exc})") from exc
         if not np.all(np.isfinite(pts)):

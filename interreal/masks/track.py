@@ -2,10 +2,11 @@
 
 Between two keyframes a and b each frame gets two predictions: one warped forward from a, one warped
 backward from b. Each carries a trust map (the weakest forward-backward consistency along its chain, zero
-where the source left the image). They are fused by trust and temporal distance, refined on the full-size
-image with a guided filter, and turned into exclusive labels by argmax (background last). Keyframes re-anchor
-every chain, so drift never spans more than one gap. Before the first keyframe only the backward chain
-exists, after the last only the forward one.
+where the source left the image). They are fused by trust and temporal distance; where the two disagree
+over a whole region, a colour vote (the keyframes' colour models) picks the chain that fits. Then they are
+refined on the full-size image with a guided filter, and turned into exclusive labels by argmax
+(background last). Keyframes re-anchor every chain, so drift never spans more than one gap. Before the
+first keyframe only the backward chain exists, after the last only the forward one.
 
 Soft maps (not binary) are warped: bilinear warping of a binary mask rounds every step and erodes thin
 parts; warping probabilities keeps sub-pixel boundaries, and a per-step guided filter plus a mild
@@ -21,7 +22,7 @@ import cv2
 import numpy as np
 
 from ..conventions import UNANNOTATED
-from .appearance import AppearanceConfig, ColourModel
+from .appearance import AppearanceConfig, ColourModel, joint_log_table, quantize
 from .flow import FlowConfig, FlowEngine, Step, make_step, sampling_grid
 
 
@@ -40,6 +41,9 @@ class TrackConfig:
     rigid: float = 1.0               # blend of a per-object homography (fit to the flow inside the object) into the warp
     fusion: bool = True              # fuse forward and backward chains (False = forward only where possible)
     min_weight: float = 0.05         # weight floor so a fully untrusted chain still counts a little
+    vote: float = 8.0                # colour vote of disagreeing chains: loser weight x exp(-vote * margin); 0 = off
+    vote_margin: float = 1.0         # mean log-likelihood margin (nats per pixel) below which a region's vote abstains
+    vote_min_px: int = 40            # smallest disagreement region (work-res pixels, after an opening) that votes
 
 
 @dataclass
@@ -281,7 +285,10 @@ class Propagator:
         if b > a + 1 and (start_b[1] < 1).any():
             s, c, _ = self.advance(soft, acc, b - 1, b, model)
             arrivals[b].append((s, c))
+        model_a = model
         soft, acc, model = self._start(b, start_b)
+        voting = self.cfg.vote > 0 and model is not None and model_a is not None
+        table = joint_log_table([model_a, model]) if voting else None
         span = b - a
         for t in range(b - 1, a, -1):
             soft, acc, trust = self.advance(soft, acc, t + 1, t, model)
@@ -293,6 +300,8 @@ class Propagator:
                 wb = (t - a) / span * acc[..., 1] * (acc[..., 0] + self.cfg.min_weight)
                 none = (wf + wb) < 1e-6
                 wf[none], wb[none] = (b - t) / span, (t - a) / span
+                if table is not None:
+                    wf, wb = self._vote(sf, soft, wf, wb, self.cache.work(t), table)
                 fused = (wf[..., None] * sf + wb[..., None] * soft) / (wf + wb)[..., None]
             else:
                 fused = sf
@@ -304,6 +313,43 @@ class Propagator:
             s, c, _ = self.advance(soft, acc, a + 1, a, model)
             arrivals[a].append((s, c))
         self._flows.clear()
+
+    def _vote(self, sf: np.ndarray, sb: np.ndarray, wf: np.ndarray, wb: np.ndarray, image: np.ndarray,
+              table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where the chains disagree over a region, the one whose labels fit the keyframes' colours wins it.
+
+        Temporal distance and flow trust cannot settle two confident chains that disagree (a door swinging
+        shut just before the next keyframe: the backward chain confidently tracks the background over the
+        door's face). Each connected region of disagreement votes once, with the mean colour log-likelihood
+        of each chain's labels there; thin boundary slivers (removed by an opening) and close calls abstain.
+        """
+        lf, lb = np.argmax(sf, -1), np.argmax(sb, -1)
+        dis = lf != lb
+        if not dis.any():
+            return wf, wb
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+        ll = table[quantize(image, self.cfg.appearance.bins)]
+        diff = np.take_along_axis(ll, lf[..., None], -1)[..., 0] - np.take_along_axis(ll, lb[..., None], -1)[..., 0]
+        m = np.zeros(lf.shape, np.float32)
+        # one region per (forward label, backward label) pair: a part that sits in different places in the two
+        # chains makes two regions side by side (door here / background there, and the reverse) that vote apart
+        pair = np.where(dis, lf * (self.k + 1) + lb, -1)
+        for code in np.unique(pair[dis]):
+            sel = (pair == code).astype(np.uint8)
+            core = cv2.morphologyEx(sel, cv2.MORPH_OPEN, kernel)
+            if int(core.sum()) < self.cfg.vote_min_px:
+                continue
+            n, comp = cv2.connectedComponents(core, connectivity=8)
+            count = np.bincount(comp.ravel(), minlength=n)
+            mean = np.bincount(comp.ravel(), weights=diff.ravel(), minlength=n) / np.maximum(count, 1)
+            mean[(count < self.cfg.vote_min_px) | (np.arange(n) == 0)] = 0.0
+            margin = np.sign(mean) * np.clip(np.abs(mean) - self.cfg.vote_margin, 0.0, None)
+            # the vote covers the whole region, not only its opened core: grow the cores back over it
+            grown = cv2.dilate(comp.astype(np.float32), kernel).astype(np.int32)
+            m = np.where(sel > 0, margin[grown], m).astype(np.float32)
+        wf = wf * np.exp(-self.cfg.vote * np.clip(-m, 0.0, None))
+        wb = wb * np.exp(-self.cfg.vote * np.clip(m, 0.0, None))
+        return wf, wb
 
     def _keyframe(self, k: int, index_map: np.ndarray, arr: list) -> FrameResult:
         """A keyframe is its annotation; pixels marked 255 take the chains that arrive there (else background)."""

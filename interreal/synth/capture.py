@@ -13,7 +13,6 @@ import shutil
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from fractions import Fraction
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -25,6 +24,7 @@ from .. import __version__, atomic
 from ..conventions import fid_of_index, frame_name
 from ..dataset import Intrinsics
 from ..errors import DatasetError, InputError
+from ..video import VideoWriter
 from .config import SynthConfig
 from .scene import RenderResult, Scene, build_scene
 
@@ -64,30 +64,6 @@ def _encode_png(img: np.ndarray, level: int = 1) -> bytes:
 def depth_to_png(depth: np.ndarray) -> np.ndarray:
     d = np.where(np.isfinite(depth), depth, 0.0) * DEPTH_SCALE
     return np.clip(np.round(d), 0, 65535).astype(np.uint16)
-
-
-class _VideoWriter:
-    """H.264 (libx264, yuv420p) MP4 through PyAV."""
-
-    def __init__(self, path: Path, width: int, height: int, fps: float, crf: int):
-        import av
-
-        self.container = av.open(str(path), mode="w", format="mp4")
-        self.stream = self.container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
-        self.stream.width, self.stream.height = width, height
-        self.stream.pix_fmt = "yuv420p"
-        self.stream.options = {"crf": str(int(crf)), "preset": "veryfast"}
-        self._av = av
-
-    def write(self, rgb: np.ndarray) -> None:
-        frame = self._av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
-        for pkt in self.stream.encode(frame):
-            self.container.mux(pkt)
-
-    def close(self) -> None:
-        for pkt in self.stream.encode():
-            self.container.mux(pkt)
-        self.container.close()
 
 
 def _render_one(scene: Scene, i: int) -> tuple[int, RenderResult, bytes, bytes, float]:
@@ -131,7 +107,7 @@ def write_capture(cfg: SynthConfig, out_dir: str | Path, progress: bool = True,
     names = scene.object_names
     scene.caster()  # the per-pixel rays, once, before the render threads start
     try:
-        video = _VideoWriter(stage / VIDEO, cfg.width, cfg.height, cfg.fps, cfg.crf)
+        video = VideoWriter(stage / VIDEO, cfg.width, cfg.height, cfg.fps, cfg.crf)
         render_s = encode_s = write_s = 0.0
         t_loop = time.perf_counter()
         with ThreadPoolExecutor(max_workers=cfg.threads) as pool:

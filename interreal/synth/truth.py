@@ -18,6 +18,30 @@ from ..report import StageReport
 from .capture import Capture
 
 
+def surface_box(cap: Capture, every: int = 10) -> list[float]:
+    """World box [x0, y0, z0, x1, y1, z1] of the surfaces the capture saw (depth back-projected, 0.5-99.5
+    percentiles, 5 % pad): the `aabb` a radiance field should cover."""
+    from ..conventions import opengl_to_opencv
+
+    intr = cap.intrinsics
+    pts = []
+    for i in range(0, len(cap), every):
+        d = cap.depth(i)
+        h, w = d.shape
+        it = intr.scaled(w, h)
+        ys, xs = np.mgrid[0:h:4, 0:w:4]
+        z = d[ys, xs]
+        ok = z > 0
+        x = (xs[ok] + 0.5 - it.cx) / it.fl_x * z[ok]
+        y = (ys[ok] + 0.5 - it.cy) / it.fl_y * z[ok]
+        c2w = opengl_to_opencv(cap.poses[i])
+        pts.append(np.stack([x, y, z[ok]], -1) @ c2w[:3, :3].T + c2w[:3, 3])
+    p = np.concatenate(pts)
+    lo, hi = np.percentile(p, 0.5, 0), np.percentile(p, 99.5, 0)
+    pad = 0.05 * (hi - lo)
+    return [float(v) for v in np.concatenate([lo - pad, hi + pad])]
+
+
 def truth_dataset(capture_dir: str | Path, ds_dir: str | Path, size: tuple[int, int] = (320, 240),
                   every: int = 1, progress: bool = False) -> Path:
     """Write a valid LiveScene dataset from `capture_dir`'s truth into `ds_dir` (replaced if it exists).
@@ -63,7 +87,8 @@ def truth_dataset(capture_dir: str | Path, ds_dir: str | Path, size: tuple[int, 
         if len(frames) != len(keep):
             raise InputError(f"{cap.video_path} has fewer decodable frames ({len(frames)} of {len(keep)} wanted): "
                              f"re-run `interreal synth`")
-        D.write_transforms(ds, intr, frames, extra={"synth_capture": str(Path(capture_dir).resolve())})
+        D.write_transforms(ds, intr, frames, extra={"synth_capture": str(Path(capture_dir).resolve()),
+                                                   "aabb": surface_box(cap)})
         D.write_mapping(ds, dict(enumerate(names)))
         D.write_labels(ds, {k: v for k, v in labels.items() if frame_index(k) in keep_set})
         D.write_prompts(ds, cap.descriptions)

@@ -17,7 +17,7 @@ from typing import Any
 from benchlib import bench_args
 
 HERE = Path(__file__).resolve().parent
-BENCHES = ["synth", "poses", "masks", "train", "ground", "stress"]
+BENCHES = ["synth", "poses", "masks", "train", "ground", "model_size", "stress"]
 # columns shown per benchmark (others stay in the JSON)
 COLUMNS: dict[str, list[str]] = {
     "synth": ["variant", "frames", "size", "wall_s", "fps", "reproj_err"],
@@ -26,6 +26,7 @@ COLUMNS: dict[str, list[str]] = {
     "train": ["data", "variant", "minutes", "steps", "psnr", "ssim", "state_mae", "novel_state_psnr", "mask_iou",
               "params", "label_fraction"],
     "ground": ["data", "query", "object", "retrieved_ok", "iou"],
+    "model_size": ["data", "variant", "capacity", "params", "psnr", "minutes", "auto"],
     "stress": ["stress", "level", "stage", "metric", "value", "usable", "detected"],
 }
 

@@ -12,7 +12,7 @@ import yaml
 
 from interreal.errors import InputError
 from interreal.synth import Capture, SynthConfig, build_scene, list_presets, load_preset, truth_dataset, write_capture
-from interreal.synth.consistency import project, reprojection_error, unproject
+from interreal.synth.consistency import reprojection_error, unproject
 from interreal.synth.render import NEAR, RayCaster
 
 SMALL = dict(frames=30, width=320, height=240, seed=0)

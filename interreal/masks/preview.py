@@ -47,33 +47,3 @@ def contact_sheet(path: Path, tiles: list[np.ndarray], cols: int = 6) -> None:
         r, c = divmod(i, cols)
         sheet[r * h:(r + 1) * h, c * w:(c + 1) * w] = t[:h, :w]
     atomic.write_image(path, sheet)
-
-
-class VideoWriter:
-    """H.264 overlay video, written to a temporary name and renamed when complete."""
-
-    def __init__(self, path: Path, width: int, height: int, fps: int = 15):
-        import av
-
-        self.path = Path(path)
-        self.tmp = self.path.with_name(f".{self.path.name}.tmp.mp4")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.size = (width - width % 2, height - height % 2)
-        self.container = av.open(str(self.tmp), mode="w")
-        self.stream = self.container.add_stream("h264", rate=fps)
-        self.stream.width, self.stream.height = self.size
-        self.stream.pix_fmt = "yuv420p"
-        self.stream.options = {"crf": "28", "preset": "veryfast"}
-
-    def add(self, rgb: np.ndarray) -> None:
-        import av
-
-        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb[: self.size[1], : self.size[0]]), format="rgb24")
-        for pkt in self.stream.encode(frame):
-            self.container.mux(pkt)
-
-    def close(self) -> None:
-        for pkt in self.stream.encode():
-            self.container.mux(pkt)
-        self.container.close()
-        self.tmp.replace(self.path)

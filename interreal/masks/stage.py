@@ -20,7 +20,8 @@ from .appearance import AppearanceConfig
 from .confidence import frame_confidence, suggest_frames
 from .flow import FlowConfig
 from .keyframes import load_keyframes
-from .preview import VideoWriter, contact_sheet, thumb
+from ..video import VideoWriter
+from .preview import contact_sheet, thumb
 from .track import Propagator, TrackConfig
 
 SFM_MASKS_DIR = "sfm_masks"
@@ -135,10 +136,10 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
                 contact_sheet(prev_dir / "masks_sheet.png", [tiles[p] for p in sorted(tiles)])
             if video:
                 first_v = video[min(video)]
-                vw = VideoWriter(prev_dir / "masks_overlay.mp4", first_v.shape[1], first_v.shape[0])
-                for p in sorted(video):
-                    vw.add(video[p])
-                vw.close()
+                with VideoWriter(prev_dir / "masks_overlay.mp4", first_v.shape[1], first_v.shape[0], fps=15,
+                                 crf=28) as vw:
+                    for p in sorted(video):
+                        vw.write(video[p])
         is_key = np.zeros(len(fids), bool)
         is_key[list(anchors)] = True
         picks = suggest_frames(conf, is_key, suggest)

@@ -34,7 +34,7 @@ class DemoConfig:
     minutes: float = 10.0
     steps: int = 0  # 0 = the preset's
     sweep_frames: int = 24
-    eval_frames: int = 0  # held-out frames to score (0 = all)
+    eval_frames: int = 8  # held-out frames to score, evenly spread (0 = all)
     eval_scale: float = 1.0  # render scale for the scores (0.5 = a quicker estimate)
     novel: int = 4  # held-out cameras rendered at state combinations never seen in training
     device: str = "auto"
@@ -67,7 +67,11 @@ def process_capture(cfg: DemoConfig, video: Path, keyframes: Path | None, labels
 
     ds = cfg.out / "dataset"
     t0 = time.perf_counter()
-    fig = process(video, ds, keyframes=keyframes, labels=labels, long_side=cfg.train_long_side)
+    done = read_report(ds, "process")
+    if done and done.get("status") == "ok" and validate(ds).ok:
+        fig = dict(read_report(ds, "poses").get("figures", {}))  # a finished run: reuse it
+    else:
+        fig = process(video, ds, keyframes=keyframes, labels=labels, long_side=cfg.train_long_side)
     res = validate(ds)
     if not res.ok:
         raise DatasetError("the processed dataset does not validate:\n" + "\n".join(str(p) for p in res.problems))
@@ -113,10 +117,16 @@ def train_run(cfg: DemoConfig, ds: Path) -> Path:
     tc = load_preset(cfg.preset)
     if cfg.steps:
         tc.steps = cfg.steps
-    resume = (run / "latest.pt").exists()
-    summary = train(ds, run, tc, device=cfg.device, resume=resume, max_minutes=cfg.minutes)
+    from .report import read_report
+
+    done = read_report(run, "train")
+    if done and done.get("status") == "ok":  # a finished run: reuse it (re-running would train further)
+        summary = done.get("figures", {})
+    else:
+        resume = (run / "latest.pt").exists()
+        summary = train(ds, run, tc, device=cfg.device, resume=resume, max_minutes=cfg.minutes)
     _row(cfg, "train", time.perf_counter() - t0,
-         f"{summary['steps']} steps, {summary.get('params', '?')} params, stop: {summary.get('stop')}")
+         f"{summary.get('steps', '?')} steps, {summary.get('params', '?')} params, stop: {summary.get('stop')}")
     return run
 
 
@@ -215,7 +225,7 @@ def add_arguments(p) -> None:
     p.add_argument("--preset", default="cpu", help="livescene training preset (default cpu)")
     p.add_argument("--minutes", type=float, default=10.0, help="training time limit in minutes (default 10)")
     p.add_argument("--steps", type=int, default=0, help="training steps (default: the preset's)")
-    p.add_argument("--eval-frames", type=int, default=0, help="held-out frames to score (0 = all)")
+    p.add_argument("--eval-frames", type=int, default=8, help="held-out frames to score, evenly spread (default 8; 0 = all)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda")
     p.epilog = ("examples:\n"
                 "  interreal demo                        # simulate, process, train (<= 10 min on 2 cores), eval, render\n"

@@ -52,3 +52,28 @@ def test_crash_is_a_silent_failure():
 
     rows = bench_stress.run_suite({"noise": ("noise", [3.0], [], False)}, True, Path("/x"), runner=crashing)
     assert len(bench_stress.silent_failures(rows)) == 1 and "boom" in rows[0]["message"]
+
+
+def test_only_degradation_causes_count_as_detection(tmp_path):
+    import json
+
+    rep = tmp_path / "masks.json"
+    rep.write_text(json.dumps({"warnings": [{"message": "low confidence on 3 frames; add a keyframe", "cause": "propagation"}]}))
+    assert bench_stress._warnings(rep, "masks") == []
+    rep.write_text(json.dumps({"warnings": [{"message": "masks are unreliable", "cause": "masks-unreliable"}]}))
+    assert bench_stress._warnings(rep, "masks") == ["masks are unreliable"]
+
+
+def test_trainer_warns_about_too_few_labels():
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from livescene.trainer import label_warnings
+
+    given = np.zeros((40, 2), bool)
+    given[::4, 0] = True  # 10 of 40 frames: fine
+    given[0, 1] = True  # 1 frame: too few
+    views = SimpleNamespace(train=list(range(40)), names=["door", "drawer"], given=given)
+    warned = label_warnings(views)
+    assert len(warned) == 1 and "'drawer'" in warned[0][0] and warned[0][1] == "few-labels"

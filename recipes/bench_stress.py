@@ -93,7 +93,7 @@ DEGRADED_CAUSES: dict[str, set[str]] = {
     "masks": {"masks-unreliable"},
     "poses": {"low-registration", "texture", "blur", "motion", "exposure", "split"},
     "labels": {"stale-label"},
-    "train": {"few-labels", "low-fit"},
+    "train": {"few-labels", "low-fit", "states-unreliable"},
 }
 
 

@@ -77,3 +77,24 @@ def test_trainer_warns_about_too_few_labels():
     views = SimpleNamespace(train=list(range(40)), names=["door", "drawer"], given=given)
     warned = label_warnings(views)
     assert len(warned) == 1 and "'drawer'" in warned[0][0] and warned[0][1] == "few-labels"
+
+
+def test_trainer_warns_when_learned_states_miss_held_out_labels():
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from livescene.trainer import state_warnings
+
+    labels = np.zeros((16, 1), np.float32)
+    labels[8:] = 1.0
+    given = np.zeros((16, 1), bool)
+    given[[0, 8, 12, 15]] = True
+    ds = SimpleNamespace(label_matrix=lambda: (labels, given))
+    views = SimpleNamespace(dataset=ds, names=["door"], train=[i for i in range(16) if i % 8], held_out=[0, 8])
+    good = labels.copy()
+    assert state_warnings(good, views) == []
+    bad = good.copy()
+    bad[8] = 0.2  # the held-out labelled frame 8 is missed by 0.8 -> mean error 0.4 over frames 0 and 8
+    warned = state_warnings(bad, views)
+    assert len(warned) == 1 and "held-out" in warned[0][0] and warned[0][1] == "states-unreliable"

@@ -66,16 +66,15 @@ def process_capture(cfg: DemoConfig, video: Path, keyframes: Path | None, labels
     from .report import read_report
 
     ds = cfg.out / "dataset"
-    t0 = time.perf_counter()
     done = read_report(ds, "process")
-    if done and done.get("status") == "ok" and validate(ds).ok:
+    res = validate(ds) if done and done.get("status") == "ok" else None
+    if res is not None and res.ok:
         fig = dict(read_report(ds, "poses").get("figures", {}))  # a finished run: reuse it
     else:
         fig = process(video, ds, keyframes=keyframes, labels=labels, long_side=cfg.train_long_side)
-    res = validate(ds)
+        res = validate(ds)
     if not res.ok:
         raise DatasetError("the processed dataset does not validate:\n" + "\n".join(str(p) for p in res.problems))
-    dt = time.perf_counter() - t0
     rep = read_report(ds, "process") or {}
     steps = rep.get("steps", {})
     _row(cfg, "frames", steps.get("frames", {}).get("wall_s", 0.0), f"{steps.get('frames', {}).get('frames', '?')} frames selected")
@@ -91,7 +90,6 @@ def process_capture(cfg: DemoConfig, video: Path, keyframes: Path | None, labels
         _, given = d.label_matrix()
         _row(cfg, "labels", steps.get("labels", {}).get("wall_s", 0.0), f"{int(given.sum())} labelled (frame, object) pairs "
              f"on {int(given.any(1).sum())}/{len(d.frames)} frames")
-    _ = dt
     return ds
 
 

@@ -306,9 +306,7 @@ def test_propagation_runs_in_background(client, ds, monkeypatch):
 
 def test_propagation_progress_from_mask_files(client, ds, monkeypatch):
     """With `progress: bool` (a tqdm switch, as interreal.masks has it) progress is read off DS/masks/*.npy."""
-    import sys
     import threading
-    import types
 
     step = threading.Event()
     seen = {}
@@ -321,14 +319,7 @@ def test_propagation_progress_from_mask_files(client, ds, monkeypatch):
                 step.wait(10)
         return {"frames": 3, "confidence_mean": {"door": 0.9}, "confidence": {"door": {"00000": 1.0}}}
 
-    fake = types.ModuleType("interreal.masks")
-    fake.propagate = propagate
-    monkeypatch.setitem(sys.modules, "interreal.masks", fake)
-    import interreal
-
-    monkeypatch.setattr(interreal, "masks", fake, raising=False)
-    client.post("/api/objects", json={"name": "door"})
-    client.post("/api/keyframe/00000", json=_poly(0, "door", [[1, 1], [9, 1], [9, 9]], {}))
+    _install_fake_masks(monkeypatch, client, propagate)
     client.post("/api/propagate")
     for _ in range(200):
         st = client.get("/api/propagate").json()
@@ -356,20 +347,11 @@ def test_suggestions_from_the_masks_report_figures(client, ds):
 
 
 def test_propagation_failure_is_reported(client, ds, monkeypatch):
-    import sys
-    import types
 
     def propagate(ds_, keyframes_dir):
         raise ValueError("keyframe 00000 has no object pixels")
 
-    fake = types.ModuleType("interreal.masks")
-    fake.propagate = propagate
-    monkeypatch.setitem(sys.modules, "interreal.masks", fake)
-    import interreal
-
-    monkeypatch.setattr(interreal, "masks", fake, raising=False)
-    client.post("/api/objects", json={"name": "door"})
-    client.post("/api/keyframe/00000", json=_poly(0, "door", [[1, 1], [9, 1], [9, 9]], {}))
+    _install_fake_masks(monkeypatch, client, propagate)
     client.post("/api/propagate")
     for _ in range(100):
         st = client.get("/api/propagate").json()
@@ -427,3 +409,18 @@ def test_undo_last_stroke(client, ds):
     assert client.post("/api/keyframe/00003/undo", json={"versions": c["versions"]}).status_code == 200
     r = client.post("/api/keyframe/00003/undo", json={"versions": a["versions"]})
     assert r.status_code == 200 and r.json()["exists"] is False and not (ds / "keyframes" / "00003.png").exists()
+
+
+def _install_fake_masks(monkeypatch, client, propagate) -> None:
+    """Stand in `propagate` for interreal.masks, and give the app one object with one keyframe to propagate."""
+    import sys
+    import types
+
+    import interreal
+
+    fake = types.ModuleType("interreal.masks")
+    fake.propagate = propagate
+    monkeypatch.setitem(sys.modules, "interreal.masks", fake)
+    monkeypatch.setattr(interreal, "masks", fake, raising=False)
+    client.post("/api/objects", json={"name": "door"})
+    client.post("/api/keyframe/00000", json=_poly(0, "door", [[1, 1], [9, 1], [9, 9]], {}))

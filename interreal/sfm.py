@@ -3,10 +3,14 @@
 What differs from ns-process-data, and why (measured in reference/process-data.md and recipes/bench_poses.py):
 - SIFT at <= 1000 px with a feature cap (training images stay at their size; COLMAP rescales keypoints), so
   extraction and matching cost a fraction of full-resolution SfM at no accuracy loss.
-- One shared SIMPLE_RADIAL camera (never PINHOLE: phone frames are distorted and PINHOLE costs 30x rotation error).
+- One shared RADIAL camera (f, cx, cy, k1, k2; never PINHOLE: phone frames are distorted and PINHOLE costs 30x
+  rotation error; k2 cut the error by a quarter against SIMPLE_RADIAL on both fox and the simulator).
 - Per-image masks drop object pixels from features: moving parts otherwise corrupt poses.
 - Exhaustive matching for small sets, sequential (quadratic overlap) + loop detection with a vocabulary tree built
   from the capture's own descriptors for larger ones (no download: an empty tree path aborts the process offline).
+- Long videos (>= KEY_STRIDE_MIN frames): every 3rd frame is matched and mapped first; the others are matched to
+  their neighbours and registered into that model (PnP + local BA), then one final BA polishes all. Incremental
+  BA's cost grows faster than linearly with the frame count, so this halves the time on 300 frames.
 - The LARGEST model is kept (not sparse/0) and the others are reported; under 90 % registered a retry ladder runs.
 - Gravity-like orientation ("vertical"), centred and scaled to max |t| = 1; the transform is recorded.
 - Resumable: features, matches and the final model are reused when their inputs and settings are unchanged.
@@ -24,12 +28,20 @@ from typing import Any
 import numpy as np
 
 from . import atomic
-from .conventions import IMAGES_DIR, MASKS_DIR, TRANSFORMS_FILE, frame_id, frame_index, opencv_to_opengl
+from .conventions import (
+    IMAGES_DIR,
+    MASKS_DIR,
+    TRANSFORMS_FILE,
+    frame_id,
+    frame_index,
+    opencv_to_opengl,
+)
 from .dataset import Frame, Intrinsics, list_images, write_transforms
 from .errors import InputError, StageError
 from .report import StageReport, fingerprint
 
 COLMAP_DIR = "colmap"
+KEY_STRIDE_MIN = 150  # frames from which a sequential capture is mapped on every 3rd frame first (auto key_stride)
 SFM_MASKS_DIR = "sfm_masks"
 PLY_FILE = "sparse_pc.ply"
 
@@ -43,10 +55,13 @@ class SfMConfig:
     first_octave: int | None = None  # None = auto: -1 (COLMAP's 2x upsampled octave) when SIFT sees the frames at
     # native size (5x lower rotation error at 640x480 than 0), 0 when it downscales them (fox 1600 -> 1000 px:
     # 2.3x faster and 0.21 vs 0.24 deg from the reference)
-    camera_model: str = "SIMPLE_RADIAL"  # or OPENCV
+    peak_threshold: float | None = None  # SIFT DoG peak threshold; None = COLMAP's default
+    camera_model: str = "RADIAL"  # k1, k2: 0.154 vs 0.200 deg on fox, 0.052 vs 0.068 on synth (SIMPLE_RADIAL); or OPENCV
     matcher: str = "auto"  # auto | sequential | exhaustive
     exhaustive_max: int = 40  # auto: exhaustive up to this many images (n^2/2 pairs; sequential beyond)
     overlap: int = 6  # + quadratic (i+1..6, i+2^k) + loop detection; the retry ladder triples it
+    key_stride: int = 0  # sequential captures: map every Nth frame first, then register the rest into that model
+    # (0 = auto: 3 from KEY_STRIDE_MIN frames on, else 1 = all frames at once)
     quadratic_overlap: bool = True
     loop_detection: bool = True
     mapper: str = "incremental"  # incremental | global
@@ -56,6 +71,8 @@ class SfMConfig:
     orientation: str = "vertical"  # vertical | up | none
     center_scale: bool = True
     undistort: bool = False  # also write DS/undistorted/ (pinhole images + model) for splatting trainers
+    ba_tolerance: float = 1e-6  # relative cost change that ends a global BA (Ceres function_tolerance; COLMAP: 0, i.e.
+    # 100 iterations): the final BA took half the time at the same error (synth 60: 0.0528 vs 0.0523 deg)
     principal_point: str = "auto"  # final BA: auto (free (cx, cy) only when it clearly helps) | refine | fixed
     seed: int = 0
     num_threads: int = -1
@@ -224,6 +241,7 @@ class Rung:
     loop_detection: bool
     mapper: str  # incremental | global
     relaxed: bool = False
+    stride: int = 1  # > 1: keyframes (every stride-th frame) are matched and mapped first, the rest registered after
 
 
 def extract(pc, db: Path, image_dir: Path, names: list[str], mask_dir: Path | None, cfg: SfMConfig,
@@ -232,6 +250,8 @@ def extract(pc, db: Path, image_dir: Path, names: list[str], mask_dir: Path | No
     ext = pc.FeatureExtractionOptions(num_threads=cfg.num_threads, use_gpu=False, max_image_size=cfg.sfm_long_side)
     ext.sift.max_num_features = cfg.max_features
     ext.sift.first_octave = resolve_octave(cfg, image_dir / names[0])
+    if cfg.peak_threshold is not None:
+        ext.sift.peak_threshold = cfg.peak_threshold
     if db.exists():
         db.unlink()
     bar = log.bar(len(names), "features") if log else None
@@ -274,6 +294,25 @@ def sequential_pairs(n: int, overlap: int, quadratic: bool) -> list[tuple[int, i
     return sorted(pairs)
 
 
+def key_positions(n: int, stride: int) -> list[int]:
+    """Keyframe positions for a strided run: every stride-th frame, and the last one."""
+    keys = list(range(0, n, max(1, stride)))
+    return keys if keys[-1] == n - 1 else keys + [n - 1]
+
+
+def strided_pairs(n: int, stride: int, overlap: int, quadratic: bool) -> list[tuple[int, int]]:
+    """Sequential pairing among the keyframes (in keyframe order), plus each other frame with its neighbour and
+    the keyframes on both sides: enough matches to register it into the keyframes' model and extend its tracks."""
+    keys = key_positions(n, stride)
+    pairs = {(keys[a], keys[b]) for a, b in sequential_pairs(len(keys), overlap, quadratic)}
+    for i in range(n - 1):
+        pairs.add((i, i + 1))
+    for lo, hi in zip(keys[:-1], keys[1:]):
+        for i in range(lo + 1, hi):
+            pairs.update({(lo, i), (i, hi)})
+    return sorted(pairs)
+
+
 def match(pc, db: Path, rung: Rung, tree: Path | None, cfg: SfMConfig, names: list[str], work: Path,
           log: NativeLog | None = None, chunk: int = 200) -> None:
     """Match the rung's pairs (already matched pairs are skipped by COLMAP), in chunks for the progress bar;
@@ -284,6 +323,8 @@ def match(pc, db: Path, rung: Rung, tree: Path | None, cfg: SfMConfig, names: li
     n = len(names)
     if rung.matcher == "exhaustive":
         pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    elif rung.stride > 1:
+        pairs = strided_pairs(n, rung.stride, rung.overlap, cfg.quadratic_overlap)
     else:
         pairs = sequential_pairs(n, rung.overlap, cfg.quadratic_overlap)
     listing = work / "pairs.txt"
@@ -302,7 +343,8 @@ def match(pc, db: Path, rung: Rung, tree: Path | None, cfg: SfMConfig, names: li
         if tree is None or not tree.exists():
             raise StageError("loop detection needs a local vocabulary tree (internal error: tree not built)")
         queries = work / "loop_queries.txt"
-        queries.write_text("".join(f"{names[i]}\n" for i in range(0, n, 10)))
+        step = 10 if rung.stride <= 1 else rung.stride * max(1, round(10 / rung.stride))  # every ~10th, keyframes only
+        queries.write_text("".join(f"{names[i]}\n" for i in range(0, n, step)))
         popt = pc.VocabTreePairingOptions(num_images=10, vocab_tree_path=str(tree), match_list_path=str(queries),
                                           num_threads=cfg.num_threads)
         pc.match_vocabtree(str(db), matching_options=mopt, pairing_options=popt, verification_options=vopt,
@@ -311,7 +353,7 @@ def match(pc, db: Path, rung: Rung, tree: Path | None, cfg: SfMConfig, names: li
 
 
 def reconstruct(pc, db: Path, image_dir: Path, out: Path, rung: Rung, cfg: SfMConfig,
-                log: NativeLog | None = None, n: int = 0) -> dict[int, Any]:
+                log: NativeLog | None = None, names: list[str] | None = None) -> dict[int, Any]:
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     pc.set_random_seed(cfg.seed)
@@ -326,6 +368,7 @@ def reconstruct(pc, db: Path, image_dir: Path, out: Path, rung: Rung, cfg: SfMCo
     opt.ba_global_max_num_iterations = 20
     opt.ba_local_max_num_iterations = 10
     opt.ba_global_max_refinements = 2
+    opt.ba_global_function_tolerance = cfg.ba_tolerance
     opt.ba_local_max_refinements = 1
     if rung.relaxed:
         opt.min_num_matches = 8
@@ -334,10 +377,29 @@ def reconstruct(pc, db: Path, image_dir: Path, out: Path, rung: Rung, cfg: SfMCo
         opt.mapper.abs_pose_min_inlier_ratio = 0.15
         opt.mapper.init_min_tri_angle = 8.0
         opt.mapper.max_reg_trials = 6
-    bar = log.bar(n, "mapping (registered)") if log and n else None
+    names = names or []
+    bar = log.bar(len(names), "mapping (registered)") if log and names else None
+    tick = (lambda: bar.update(1)) if bar is not None else None
     try:
-        return dict(pc.incremental_mapping(str(db), str(image_dir), str(out), options=opt,
-                                           next_image_callback=(lambda: bar.update(1)) if bar is not None else None))
+        if rung.stride <= 1 or not names:
+            return dict(pc.incremental_mapping(str(db), str(image_dir), str(out), options=opt, next_image_callback=tick))
+        # 1. the keyframes alone: a third of the frames carry the geometry at a fraction of incremental BA's cost
+        key_opt = pc.IncrementalPipelineOptions(opt.todict())
+        key_opt.image_names = [names[i] for i in key_positions(len(names), rung.stride)]
+        for sub in ("keys", "keys_best", "all"):
+            (out / sub).mkdir()
+        keys = dict(pc.incremental_mapping(str(db), str(image_dir), str(out / "keys"), options=key_opt,
+                                           next_image_callback=tick))
+        if not keys:
+            return {}
+        best = max(keys, key=lambda k: keys[k].num_reg_images())
+        seed = out / "keys_best"
+        keys[best].write(str(seed))
+        # 2. every other frame registered into it (PnP + local BA), no global BA until the final refinement
+        fill = pc.IncrementalPipelineOptions(opt.todict())
+        fill.ba_global_frames_ratio = fill.ba_global_points_ratio = 100.0
+        return dict(pc.incremental_mapping(str(db), str(image_dir), str(out / "all"), options=fill,
+                                           input_path=str(seed), next_image_callback=tick))
     finally:
         if bar is not None:
             bar.close()
@@ -352,6 +414,7 @@ def _ba(pc, rec, cfg: SfMConfig, principal_point: bool) -> float:
     opt = pc.BundleAdjustmentOptions(refine_focal_length=True, refine_principal_point=principal_point,
                                      refine_extra_params=True, print_summary=False)
     opt.ceres.solver_options.num_threads = cfg.num_threads
+    opt.ceres.solver_options.function_tolerance = cfg.ba_tolerance
     pc.bundle_adjustment(rec, opt)
     errs = np.fromiter((p.error for p in rec.points3D.values()), dtype=np.float64)
     return float(np.sqrt(np.mean(errs ** 2))) if errs.size else 0.0
@@ -392,10 +455,12 @@ def ladder(cfg: SfMConfig, n: int) -> list[Rung]:
         base = Rung("base", "exhaustive", cfg.overlap, False, cfg.mapper)
         rungs = [base, replace(base, name="relaxed", relaxed=True)]
     else:
-        base = Rung("base", "sequential", cfg.overlap, cfg.loop_detection, cfg.mapper)
-        rungs = [base, replace(base, name="more-overlap", overlap=cfg.overlap * 3, loop_detection=True)]
+        stride = cfg.key_stride or (3 if n >= KEY_STRIDE_MIN else 1)
+        base = Rung("base", "sequential", cfg.overlap, cfg.loop_detection, cfg.mapper,
+                    stride=stride if cfg.mapper == "incremental" else 1)
+        rungs = [base, replace(base, name="more-overlap", overlap=cfg.overlap * 3, loop_detection=True, stride=1)]
         if n <= 400:
-            rungs.append(replace(base, name="exhaustive", matcher="exhaustive"))
+            rungs.append(replace(base, name="exhaustive", matcher="exhaustive", stride=1))
         rungs.append(replace(rungs[-1], name="relaxed", relaxed=True))
     other = "global" if cfg.mapper == "incremental" else "incremental"
     rungs.append(replace(rungs[-1], name=f"{other}-mapper", mapper=other, relaxed=False))
@@ -485,7 +550,7 @@ def camera_intrinsics(cam) -> Intrinsics:
         return Intrinsics(w, h, p[0], p[0], p[1], p[2], k1=p[3], k2=p[4], camera_model="OPENCV")
     if name == "OPENCV":
         return Intrinsics(w, h, p[0], p[1], p[2], p[3], k1=p[4], k2=p[5], p1=p[6], p2=p[7], camera_model="OPENCV")
-    raise StageError(f"camera model {name} cannot be written to transforms.json; use SIMPLE_RADIAL or OPENCV")
+    raise StageError(f"camera model {name} cannot be written to transforms.json; use RADIAL, SIMPLE_RADIAL or OPENCV")
 
 
 def rec_poses(rec) -> tuple[list[str], np.ndarray, list[int]]:
@@ -609,7 +674,8 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
             rep.warn("no object masks (DS/masks or DS/sfm_masks): moving parts may corrupt poses; run "
                      "`interreal masks DS --keyframes DIR` first", cause="no-masks")
         fp_feat = fingerprint("features", _files_fp(images), _files_fp(mask_files) if mask_files else None,
-                              cfg.sfm_long_side, cfg.max_features, resolve_octave(cfg, images[0]), cfg.camera_model)
+                              cfg.sfm_long_side, cfg.max_features, resolve_octave(cfg, images[0]), cfg.camera_model,
+                              cfg.peak_threshold)
         db = work / "database.db"
         with rep.step("features") as st:
             if state.get("features") == fp_feat and db.exists():
@@ -688,7 +754,8 @@ def _run_ladder(pc, ds, work, db, names, rungs, fp_feat, state, state_path, cfg,
     for k, rung in enumerate(rungs):
         t0 = time.perf_counter()
         info: dict[str, Any] = {"rung": rung.name, **asdict(rung)}
-        fp_match = fingerprint(fp_feat, rung.matcher, rung.overlap, rung.loop_detection, cfg.quadratic_overlap)
+        fp_match = fingerprint(fp_feat, rung.matcher, rung.overlap, rung.loop_detection, cfg.quadratic_overlap,
+                               rung.stride)
         if k == 0 and matched and matched[0] != fp_match:
             with pc.Database.open(str(db)) as d:
                 d.clear_matches()
@@ -711,7 +778,7 @@ def _run_ladder(pc, ds, work, db, names, rungs, fp_feat, state, state_path, cfg,
             info["verified_pairs"] = st["verified_pairs"]
         with rep.step(f"map:{rung.name}"):
             with NativeLog(work / "colmap.log", cfg.verbose) as log:
-                models = reconstruct(pc, db, ds / IMAGES_DIR, work / "attempts" / rung.name, rung, cfg, log, n)
+                models = reconstruct(pc, db, ds / IMAGES_DIR, work / "attempts" / rung.name, rung, cfg, log, names)
         sizes = sorted(((int(r.num_reg_images()), i) for i, r in models.items()), reverse=True)
         info["models"] = [s for s, _ in sizes]
         info["wall_s"] = round(time.perf_counter() - t0, 3)
@@ -778,8 +845,13 @@ def add_sfm_options(p) -> None:
     p.add_argument("--matcher", choices=("auto", "sequential", "exhaustive"), default="auto",
                    help="auto = exhaustive up to 40 frames, else sequential + loop detection")
     p.add_argument("--mapper", choices=("incremental", "global"), default="incremental")
-    p.add_argument("--camera-model", choices=("SIMPLE_RADIAL", "RADIAL", "OPENCV"), default="SIMPLE_RADIAL")
+    p.add_argument("--camera-model", choices=("SIMPLE_RADIAL", "RADIAL", "OPENCV"), default="RADIAL",
+                   help="shared camera model (default RADIAL: f, cx, cy, k1, k2; never PINHOLE for phone frames)")
     p.add_argument("--max-features", type=int, default=2048)
+    p.add_argument("--key-stride", type=int, default=0,
+                   help=f"map every Nth frame first, then register the others into that model (0 = auto: 3 for "
+                        f"sequential captures of >= {KEY_STRIDE_MIN} frames, else 1 = all at once; 1 is slower, a bit "
+                        "more accurate)")
     p.add_argument("--principal-point", choices=("auto", "refine", "fixed"), default="auto",
                    help="final bundle adjustment: free (cx, cy) when it clearly lowers the error (auto), always "
                         "(refine, as ns-process-data), or never")
@@ -792,6 +864,7 @@ def add_sfm_options(p) -> None:
 def sfm_options(args) -> dict[str, Any]:
     return {"sfm_long_side": args.sfm_long_side, "matcher": args.matcher, "mapper": args.mapper,
             "camera_model": args.camera_model, "max_features": args.max_features, "orientation": args.orientation,
+            "key_stride": args.key_stride,
             "use_masks": not args.no_masks, "verbose": args.verbose,
             "principal_point": args.principal_point, "undistort": args.undistort}
 

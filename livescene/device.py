@@ -36,10 +36,40 @@ def configure_threads(threads: int = 0) -> int:
 
     if threads <= 0:
         cores = os.cpu_count() or 1
-        try:
-            busy = os.getloadavg()[0] > 0.5 * cores
-        except OSError:
-            busy = False
-        threads = 1 if busy else cores
+        others = other_processes_cores()
+        if others is None:  # no /proc: the load average (which also counts this process's own recent work)
+            try:
+                others = os.getloadavg()[0]
+            except OSError:
+                others = 0.0
+        threads = 1 if others > 0.5 * cores else cores
     torch.set_num_threads(threads)
     return threads
+
+
+def other_processes_cores(window: float = 0.5) -> float | None:
+    """Cores busy with other processes right now (Linux /proc; None elsewhere).
+
+    Not the load average: after `interreal process` ran SfM in this very process, the 1-minute average still reads
+    about 2 on a quiet machine, and the trainer would wrongly drop to one thread.
+    """
+    import os
+    import time
+
+    def busy_total() -> int:
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:9]]
+        return v[0] + v[1] + v[2] + v[5] + v[6] + v[7]  # user nice system irq softirq steal (not idle, iowait)
+
+    def busy_self() -> int:
+        with open("/proc/self/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return int(fields[11]) + int(fields[12])  # utime + stime
+
+    try:
+        t0, s0 = busy_total(), busy_self()
+        time.sleep(window)
+        t1, s1 = busy_total(), busy_self()
+        return max(0.0, ((t1 - t0) - (s1 - s0)) / os.sysconf("SC_CLK_TCK") / window)
+    except (OSError, ValueError, IndexError):
+        return None

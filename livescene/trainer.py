@@ -108,11 +108,15 @@ def load_run(run_dir: str | Path, device: str = "auto", checkpoint: str | int | 
 # ----------------------------------------------------------------------------------------------------------------
 # Training
 # ----------------------------------------------------------------------------------------------------------------
-def lr_factor(step: int, cfg: TrainConfig) -> float:
-    """Linear warm-up, then cosine decay to `lr_final_ratio`."""
+def lr_factor(step: int, cfg: TrainConfig, time_frac: float = 0.0) -> float:
+    """Linear warm-up, then cosine decay to `lr_final_ratio`.
+
+    `time_frac` (elapsed / time budget) ends the decay with a `--max-minutes` budget too: a run stopped by the clock
+    would otherwise stop at full learning rate, never taking the final small steps (0.5-1 dB on the CPU preset).
+    """
     if step < cfg.warmup:
         return (step + 1) / max(cfg.warmup, 1)
-    frac = min(1.0, (step - cfg.warmup) / max(cfg.steps - cfg.warmup, 1))
+    frac = min(1.0, max((step - cfg.warmup) / max(cfg.steps - cfg.warmup, 1), time_frac))
     return cfg.lr_final_ratio + (1 - cfg.lr_final_ratio) * 0.5 * (1 + math.cos(math.pi * frac))
 
 
@@ -270,7 +274,8 @@ class Trainer:
         terms, _ = self.losses(batch)
         weights = vars(cfg.loss)
         total = sum(weights[k] * (cfg.reg_every if k in REGULARISERS else 1) * v for k, v in terms.items())
-        lr = cfg.lr * self.lr_scale * lr_factor(self.step, cfg)
+        time_frac = self.elapsed / (self.max_minutes * 60) if self.max_minutes else 0.0
+        lr = cfg.lr * self.lr_scale * lr_factor(self.step, cfg, time_frac)
         for g in self.opt.param_groups:
             g["lr"] = lr
         self.opt.zero_grad(set_to_none=True)

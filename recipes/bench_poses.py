@@ -7,7 +7,8 @@ Records (DIR/poses.json, {"runs": [...]}): data, variant, registered, total, rot
 center_err_pct_median (after a similarity alignment of camera centres, % of the reference path's bbox diagonal),
 wall_s (frames + poses), plus step times. Variants:
 - ours-masks / ours-nomasks: `extract_frames` + `estimate_poses` with defaults (synth: with and without the truth
-  object masks as DS/sfm_masks); fox has no moving parts, so only `ours`.
+  object masks as DS/sfm_masks); fox has no moving parts, so only `ours`. ours-masks-all (>= 150 frames): every
+  frame mapped at once instead of every 3rd frame first (the default for long captures): the speed/accuracy trade.
 - baseline: ns-process-data's recipe: frames at full size picked uniformly (all of them here), OPENCV camera, SIFT at
   COLMAP defaults, sequential matching (overlap 10, quadratic, no loop detection), incremental mapping with
   ba_global_function_tolerance=1e-6, sparse/0 taken as is, then a principal-point bundle adjustment
@@ -33,7 +34,13 @@ from interreal.dataset import load_dataset, load_transforms
 from interreal.frames import extract_frames
 from interreal.paths import require_shared
 from interreal.scoring import compare_poses
-from interreal.sfm import SfMConfig, estimate_poses, rec_poses, refine_intrinsics
+from interreal.sfm import (
+    KEY_STRIDE_MIN,
+    SfMConfig,
+    estimate_poses,
+    rec_poses,
+    refine_intrinsics,
+)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -69,13 +76,14 @@ def write_truth_sfm_masks(capture: Path, ds: Path) -> None:
 # ----------------------------------------------------------------------------------------------------------------
 # runs
 # ----------------------------------------------------------------------------------------------------------------
-def run_ours(source: Path, ds: Path, masks_from: Path | None = None, **frames_kw) -> tuple[dict, float, dict]:
+def run_ours(source: Path, ds: Path, masks_from: Path | None = None, sfm: dict | None = None,
+             **frames_kw) -> tuple[dict, float, dict]:
     t0 = time.perf_counter()
     extract_frames(source, ds, **frames_kw)
     t_frames = time.perf_counter() - t0
     if masks_from is not None:
         write_truth_sfm_masks(masks_from, ds)
-    fig = estimate_poses(ds, use_masks=masks_from is not None)
+    fig = estimate_poses(ds, use_masks=masks_from is not None, **(sfm or {}))
     wall = time.perf_counter() - t0
     d = load_dataset(ds)
     est = {f.index: f.c2w for f in d.frames}
@@ -165,8 +173,12 @@ def bench_synth(work: Path, frames: int, baseline: bool) -> list[dict]:
         print(f"  synth capture: {frames} frames rendered in {time.perf_counter() - t:.0f} s", flush=True)
     ref = gt_poses(cap)
     runs = []
-    for variant, masks in (("ours-masks", cap), ("ours-nomasks", None)):
-        est, wall, extra = run_ours(cap / "video.mp4", work / f"synth_{variant}", masks_from=masks, target=frames)
+    variants = [("ours-masks", cap, {}), ("ours-nomasks", None, {})]
+    if frames >= KEY_STRIDE_MIN:  # the default maps every 3rd frame first; this one maps all frames at once
+        variants.append(("ours-masks-all", cap, {"key_stride": 1}))
+    for variant, masks, sfm in variants:
+        est, wall, extra = run_ours(cap / "video.mp4", work / f"synth_{variant}", masks_from=masks, sfm=sfm,
+                                    target=frames)
         runs.append(record("synth", variant, est, ref, len(ref), wall, extra))
     if baseline:
         est, wall, extra = run_baseline(cap / "video.mp4", work / "synth_baseline")
@@ -221,6 +233,8 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="synth with 60 frames, no fox baseline")
     ap.add_argument("--frames", type=int, help="synth frames (default 300, quick 60)")
     ap.add_argument("--only", choices=("fox", "synth"), help="run one data set")
+    ap.add_argument("--no-baseline", action="store_true",
+                    help="skip the baseline runs (its code is fixed: merge an earlier run's records with --merge)")
     ap.add_argument("--work", type=Path, help="keep the work folder here (default: a temp folder, removed)")
     ap.add_argument("--merge", type=Path, nargs="+", help="combine poses.json files of separate runs (e.g. --only fox "
                                                           "and --only synth on a busy machine) into --out")
@@ -238,9 +252,9 @@ def main(argv=None) -> int:
     runs: list[dict] = []
     try:
         if args.only in (None, "fox"):
-            runs += bench_fox(work, baseline=not args.quick)
+            runs += bench_fox(work, baseline=not (args.quick or args.no_baseline))
         if args.only in (None, "synth"):
-            runs += bench_synth(work, frames, baseline=True)
+            runs += bench_synth(work, frames, baseline=not args.no_baseline)
     finally:
         if args.work is None:
             shutil.rmtree(work, ignore_errors=True)

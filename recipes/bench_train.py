@@ -7,9 +7,11 @@ params, label_fraction):
   labels     state MAE against the fraction of labelled frames (1, 2, 5, 10, 25 %)
   capacity   held-out PSNR against parameter count (capacity x0.25 .. x2; x1 = the auto size)
   objects    parameter count against the number of objects (1..6; no training needed)
-Data: `interreal synth` (300 frames, 640x480) -> `truth_dataset` at 320x240 (simulator truth for poses and masks,
-labels on ~10 % of frames); the scene box comes from the capture's depth maps (SfM's sparse_pc.ply plays that
-role on real data). Charts: DIR/train.png (4 panels).
+Data: `interreal synth` (300 frames, 640x480), then (default `--source own`) our own pipeline at 320x240, as a user
+runs it: `interreal process` (frames -> masks from the keyframes every 60 frames -> SfM poses -> state labels on ~10 %
+of frames), scene box from SfM's sparse_pc.ply; or (`--source truth`) `truth_dataset`, the simulator's poses and
+masks with the box from its depth maps. Scores are always against the simulator's truth, rendered from each frame's
+own camera. Charts: DIR/train.png (4 panels).
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ COLUMNS = ["data", "variant", "minutes", "steps", "psnr", "ssim", "state_mae", "
 
 def extra_args(p) -> None:
     p.add_argument("--data", type=Path, default=None, help="an existing `interreal synth` capture (default: make one)")
+    p.add_argument("--source", choices=("own", "truth"), default="own",
+                   help="dataset: our own pipeline's output (default) or the simulator's truth poses and masks")
     p.add_argument("--only", default="main,reject,labels,capacity,objects", help="comma list of parts to run")
     p.add_argument("--minutes", type=float, default=None, help="main run length (default 15, --quick 2)")
     p.add_argument("--sweep-minutes", type=float, default=None, help="length of each sweep run (default 4, --quick 1)")
@@ -52,12 +56,20 @@ def make_capture(out: Path, quick: bool) -> Path:
     return cap
 
 
-def make_dataset(cap: Path, out: Path) -> Path:
-    from interreal.synth import truth_dataset
+def make_dataset(cap: Path, out: Path, source: str = "own") -> Path:
+    """The training dataset at 320x240: our pipeline's output (finished stages are reused) or the simulator's truth."""
+    if source == "truth":
+        from interreal.synth import truth_dataset
 
-    ds = out / "data" / "ds"
-    if not (ds / "transforms.json").exists():
-        truth_dataset(cap, ds, size=(320, 240))
+        ds = out / "data" / "ds"
+        if not (ds / "transforms.json").exists():
+            truth_dataset(cap, ds, size=(320, 240))
+        return ds
+    from interreal.process import process
+
+    ds = out / "data" / "ds_own"
+    process(cap / "video.mp4", ds, keyframes=cap / "annotations" / "keyframes",
+            labels=cap / "annotations" / "states.yaml", long_side=320)
     return ds
 
 
@@ -82,7 +94,7 @@ def relabel(ds: Path, cap: Path, fraction: float, out: Path) -> Path:
     dst.mkdir(parents=True)
     for name in ("images", "masks"):
         (dst / name).symlink_to((ds / name).resolve())
-    for name in ("transforms.json", "mapping.yaml", "prompts.yaml"):
+    for name in ("transforms.json", "mapping.yaml", "prompts.yaml", "sparse_pc.ply"):
         if (ds / name).exists():
             shutil.copy(ds / name, dst / name)
     src = D.load_dataset(ds)
@@ -217,8 +229,8 @@ def main() -> int:
     EVAL_SCALE = args.eval_scale or (1.0 if device == "cuda" else 0.5)
     NOVEL = args.novel if args.novel is not None else 3
     cap = args.data or make_capture(args.out, quick)
-    ds = make_dataset(cap, args.out)
-    box = depth_box(cap)
+    ds = make_dataset(cap, args.out, args.source)
+    box = depth_box(cap) if args.source == "truth" else []  # own: the trainer takes it from sparse_pc.ply
     from interreal.dataset import load_dataset
 
     base = load_dataset(ds)
@@ -229,7 +241,7 @@ def main() -> int:
         runs = [r for r in json.loads(results_path.read_text()).get("runs", []) if part_of(r["variant"]) not in only]
 
     def record(variant: str, rec: dict, **extra) -> None:
-        runs.append({"data": "synth-truth 320x240", "variant": variant, "label_fraction": round(label_fraction, 3),
+        runs.append({"data": f"synth-{args.source} 320x240", "variant": variant, "label_fraction": round(label_fraction, 3),
                      **rec, **extra})
         write_results(args.out, "train", runs, quick=quick, device=device, box=box, threads=threads)
         charts(args.out / "train.png", runs)

@@ -256,3 +256,40 @@ def test_tiny_training_on_cuda(tmp_path):
     assert summary["steps"] == 30
     run = load_run(tmp_path / "run", device="cuda")
     assert run.device.type == "cuda" and next(run.model.parameters()).is_cuda
+
+
+def test_lr_schedule_ends_with_the_time_budget():
+    """A clock-limited run decays its learning rate by the clock: at the budget's end it is at the final ratio,
+    whatever the nominal step count."""
+    from livescene.config import TrainConfig
+    from livescene.trainer import lr_factor
+
+    cfg = TrainConfig()
+    cfg.steps, cfg.warmup, cfg.lr_final_ratio = 100_000, 10, 0.05
+    assert lr_factor(5, cfg) == pytest.approx(0.6)
+    assert lr_factor(500, cfg) > 0.99  # step-based: barely started
+    assert lr_factor(500, cfg, time_frac=0.5) == pytest.approx(0.525)
+    assert lr_factor(500, cfg, time_frac=1.0) == pytest.approx(0.05)
+    assert lr_factor(500, cfg, time_frac=3.0) == pytest.approx(0.05)
+
+
+def test_auto_threads_look_at_other_processes_not_the_load_average(monkeypatch):
+    """One thread only when other processes keep the cores busy; this process's own past work (SfM just before
+    training) does not count, as it would in the load average."""
+    import os
+
+    from livescene import device
+
+    cores = os.cpu_count() or 1
+    now = device.other_processes_cores(0.1)
+    assert now is not None and 0.0 <= now <= cores + 0.5
+    before = torch.get_num_threads()
+    try:
+        monkeypatch.setattr(device, "other_processes_cores", lambda window=0.5: 0.0)
+        monkeypatch.setattr(os, "getloadavg", lambda: (99.0, 99.0, 99.0))
+        assert device.configure_threads(0) == cores
+        monkeypatch.setattr(device, "other_processes_cores", lambda window=0.5: float(cores))
+        assert device.configure_threads(0) == 1
+        assert device.configure_threads(3) == 3
+    finally:
+        torch.set_num_threads(before)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -373,3 +375,40 @@ def test_fusion_colour_vote_settles_disagreeing_chains():
     # lands after the jump; without the vote it wins, with the vote the red disk's colours win
     assert without[6] < 0.2 and without[5] < 0.7, without
     assert min(with_vote.values()) > 0.9, with_vote
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# speed paths must not change the result
+# ---------------------------------------------------------------------------------------------------------------
+def test_prefetch_thread_gives_identical_masks(tmp_path):
+    """Flow and decoding on the worker thread (prefetch) produce exactly the inline result, keyframes mid-sequence
+    included (one-sided chains at both ends, a gap in between)."""
+    from interreal.masks.stage import make_config
+
+    images, truths = toy_sequence(n=14)
+    ds = make_ds(tmp_path, images)
+    keys = write_keys(tmp_path / "keys", truths, [3, 10], ["red disk", "blue square"])
+    out = {}
+    for prefetch in (0, 3):
+        shutil.rmtree(ds / "masks", ignore_errors=True)
+        cfg = dataclasses.replace(make_config(), prefetch=prefetch)
+        propagate(ds, keys, config=cfg, preview="none", suggest=0, progress=False)
+        out[prefetch] = [np.load(ds / "masks" / f"{fid_of_index(i)}.npy") for i in range(len(images))]
+    for a, b in zip(out[0], out[3]):
+        assert np.array_equal(a, b)
+
+
+def test_filter_objects_and_argmax_match_the_plain_versions():
+    from interreal.masks.track import _argmax_labels, filter_objects
+
+    rng = np.random.default_rng(0)
+    for k in (1, 3):
+        soft = rng.random((40, 50, k + 1)).astype(np.float32)
+        soft /= soft.sum(-1, keepdims=True)
+        guide = rng.random((40, 50, 3)).astype(np.float32)
+        plain = cv2.ximgproc.guidedFilter(guide, soft, 3, 0.02).reshape(40, 50, -1)
+        fast = filter_objects(lambda x: cv2.ximgproc.guidedFilter(guide, x, 3, 0.02), soft)
+        assert np.abs(plain - fast).max() < 1e-4
+        idx = np.argmax(soft, -1) + 1
+        idx[idx == k + 1] = 0
+        assert np.array_equal(_argmax_labels(soft), idx)

@@ -15,7 +15,13 @@ from interreal.dataset import load_dataset, validate
 from interreal.errors import InputError, StageError
 from interreal.frames import extract_frames
 from interreal.scoring import compare_poses, umeyama
-from interreal.sfm import _rot_between, apply_similarity, estimate_poses, estimate_up, orientation_transform
+from interreal.sfm import (
+    _rot_between,
+    apply_similarity,
+    estimate_poses,
+    estimate_up,
+    orientation_transform,
+)
 
 
 # ------------------------------------------------------------------------------------------------ a simulated capture
@@ -192,3 +198,24 @@ def test_poses_help_has_examples(capsys):
     with pytest.raises(SystemExit):
         cli.main(["poses", "--help"])
     assert "examples:" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_strided_mapping_registers_every_frame(tmp_path):
+    """Long captures map every 3rd frame first, then register the rest into that model: all frames get poses,
+    as accurate as mapping them all at once, and the report says which mode ran."""
+    from interreal.sfm import key_positions, strided_pairs
+
+    assert key_positions(10, 3) == [0, 3, 6, 9] and key_positions(11, 3) == [0, 3, 6, 9, 10]
+    pairs = set(strided_pairs(11, 3, 2, False))
+    assert {(0, 3), (3, 6), (0, 6), (0, 1), (1, 3), (9, 10)} <= pairs and (1, 2) in pairs and (2, 6) not in pairs
+    cap = render_capture(tmp_path / "cap", frames=45)
+    ds = tmp_path / "ds"
+    extract_frames(cap / "video.mp4", ds, target=45)
+    truth_masks_npy(cap, ds)
+    fig = estimate_poses(ds, key_stride=3)
+    assert fig["registered"] == fig["total"] == 45
+    err = errors(ds, gt(cap))
+    assert err["rot_err_deg_median"] < 0.5 and err["center_err_pct_median"] < 0.3, err
+    rep = json.loads((ds / "reports" / "poses.json").read_text())
+    assert rep["ladder"][0]["stride"] == 3

@@ -191,8 +191,15 @@ def run_demo(cfg: DemoConfig) -> list[dict[str, Any]]:
             raise InputError(f"--video {cfg.video} does not exist")
         capture, video, keyframes, labels = None, cfg.video, cfg.keyframes, cfg.labels
     ds = process_capture(cfg, video, keyframes, labels, capture)
+    from livescene.device import configure_threads
+
+    # torch threads per stage, from what OTHER processes use right now: two OpenMP threads on cores that another
+    # job also wants run several times slower than one (a render took 19 s instead of 3.6 s per frame)
+    configure_threads(0)
     run = train_run(cfg, ds)
+    configure_threads(0)
     evaluate_run(cfg, run, capture)
+    configure_threads(0)
     render_sweeps(cfg, run)
     cfg.rows.append({"stage": "total", "seconds": round(time.perf_counter() - t0, 1), "quality": str(cfg.out)})
     atomic.write_json(cfg.out / "demo.json", {"rows": cfg.rows})

@@ -813,7 +813,7 @@ def _run_ladder(pc, ds, work, db, names, rungs, fp_feat, state, state_path, cfg,
     rep.figures["chosen_attempt"] = rung.name
     rep.figures["ladder"] = [{"rung": t["rung"], "registered": t.get("registered", 0)} for t in tried]
     rep.figures["models"] = [s for s, _ in sizes]
-    if len(sizes) > 1:
+    if len(sizes) > 1 and sizes[0][0] < n:  # a side model that re-registers frames the main one has loses nothing
         rep.warn(f"SfM split into {len(sizes)} models of {[s for s, _ in sizes]} frames; the largest is kept "
                  "(others in colmap/sparse/1..)", cause="split-model")
     sparse = work / "sparse"

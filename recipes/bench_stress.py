@@ -91,7 +91,7 @@ def silent_failures(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 DEGRADED_CAUSES: dict[str, set[str]] = {
     "frames": {"texture/exposure"},
     "masks": {"masks-unreliable"},
-    "poses": {"low-registration", "texture", "blur", "motion", "exposure", "split"},
+    "poses": {"low-registration", "texture", "blur", "motion", "exposure", "split-model"},
     "labels": {"stale-label"},
     "train": {"few-labels", "low-fit", "states-unreliable"},
 }

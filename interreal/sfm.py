@@ -55,7 +55,6 @@ class SfMConfig:
     first_octave: int | None = None  # None = auto: -1 (COLMAP's 2x upsampled octave) when SIFT sees the frames at
     # native size (5x lower rotation error at 640x480 than 0), 0 when it downscales them (fox 1600 -> 1000 px:
     # 2.3x faster and 0.21 vs 0.24 deg from the reference)
-    peak_threshold: float | None = None  # SIFT DoG peak threshold; None = COLMAP's default
     camera_model: str = "RADIAL"  # k1, k2: 0.154 vs 0.200 deg on fox, 0.052 vs 0.068 on synth (SIMPLE_RADIAL); or OPENCV
     matcher: str = "auto"  # auto | sequential | exhaustive
     exhaustive_max: int = 40  # auto: exhaustive up to this many images (n^2/2 pairs; sequential beyond)
@@ -250,8 +249,6 @@ def extract(pc, db: Path, image_dir: Path, names: list[str], mask_dir: Path | No
     ext = pc.FeatureExtractionOptions(num_threads=cfg.num_threads, use_gpu=False, max_image_size=cfg.sfm_long_side)
     ext.sift.max_num_features = cfg.max_features
     ext.sift.first_octave = resolve_octave(cfg, image_dir / names[0])
-    if cfg.peak_threshold is not None:
-        ext.sift.peak_threshold = cfg.peak_threshold
     if db.exists():
         db.unlink()
     bar = log.bar(len(names), "features") if log else None
@@ -674,8 +671,7 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
             rep.warn("no object masks (DS/masks or DS/sfm_masks): moving parts may corrupt poses; run "
                      "`interreal masks DS --keyframes DIR` first", cause="no-masks")
         fp_feat = fingerprint("features", _files_fp(images), _files_fp(mask_files) if mask_files else None,
-                              cfg.sfm_long_side, cfg.max_features, resolve_octave(cfg, images[0]), cfg.camera_model,
-                              cfg.peak_threshold)
+                              cfg.sfm_long_side, cfg.max_features, resolve_octave(cfg, images[0]), cfg.camera_model)
         db = work / "database.db"
         with rep.step("features") as st:
             if state.get("features") == fp_feat and db.exists():

@@ -148,15 +148,14 @@ class Propagator:
         """(flow t -> t+1, flow t+1 -> t), computed once per pair."""
         if t not in self._flows:
             if self._pool is None:
-                a, b = self.cache.work(t), self.cache.work(t + 1)
-                self._flows[t] = (self.flow(a, b), self.flow(b, a))
+                flows, images = self._compute_pair(t)
             else:
                 fut = self._ahead.pop(t, None) or self._pool.submit(self._compute_pair, t)
                 flows, images = fut.result()
-                self._flows[t] = flows
-                for pos, (full, work) in images.items():
-                    self.cache.put(pos, full, work)
                 self._pump()
+            self._flows[t] = flows
+            for pos, (full, work) in images.items():
+                self.cache.put(pos, full, work)
             self.flow_pairs += 1
         return self._flows[t]
 
@@ -177,7 +176,8 @@ class Propagator:
                 self._ahead[t] = self._pool.submit(self._compute_pair, t)
 
     def _compute_pair(self, t: int):
-        """Worker thread: decode frames t and t+1 (the previous pair's frame is reused), then both flows."""
+        """Decode frames t and t+1 (the previous pair's frame is reused), then both flows; on the worker thread
+        when prefetching, else inline."""
         images = {}
         for pos in (t, t + 1):
             if pos not in self._decoded:

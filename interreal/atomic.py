@@ -64,7 +64,7 @@ def write_image(path: str | Path, image: np.ndarray) -> None:
     import cv2
 
     path = Path(path)
-    arr = image[..., ::-1] if image.ndim == 3 and image.shape[2] == 3 else image
+    arr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 and image.shape[2] == 3 else image
     ok, enc = cv2.imencode(path.suffix or ".png", np.ascontiguousarray(arr))
     if not ok:
         raise OSError(f"could not encode {path}")

@@ -198,7 +198,7 @@ def decode_image(path: Path) -> np.ndarray:
     img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if img is None:
         raise InputError(f"{path} cannot be decoded: the file is truncated or not an image; remove or replace it")
-    return np.ascontiguousarray(img[..., ::-1])
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def _upright_size(path: Path) -> tuple[int, int] | None:

@@ -381,13 +381,13 @@ def test_fusion_colour_vote_settles_disagreeing_chains():
 # speed paths must not change the result
 # ---------------------------------------------------------------------------------------------------------------
 def test_prefetch_thread_gives_identical_masks(tmp_path):
-    """Flow and decoding on the worker thread (prefetch) produce exactly the inline result, keyframes mid-sequence
-    included (one-sided chains at both ends, a gap in between)."""
+    """Flow and decoding on the worker thread (prefetch), and each gap's forward chain on its own thread while the
+    previous gap is fused, produce exactly the inline result (one-sided chains at both ends, two gaps between)."""
     from interreal.masks.stage import make_config
 
     images, truths = toy_sequence(n=14)
     ds = make_ds(tmp_path, images)
-    keys = write_keys(tmp_path / "keys", truths, [3, 10], ["red disk", "blue square"])
+    keys = write_keys(tmp_path / "keys", truths, [2, 6, 10], ["red disk", "blue square"])
     out = {}
     for prefetch in (0, 3):
         shutil.rmtree(ds / "masks", ignore_errors=True)
@@ -398,8 +398,17 @@ def test_prefetch_thread_gives_identical_masks(tmp_path):
         assert np.array_equal(a, b)
 
 
+def test_auto_work_size_follows_the_longest_keyframe_gap():
+    from interreal.masks.track import DENSE_WORK_LONG_SIDE, WORK_LONG_SIDE, auto_work_long_side
+
+    assert auto_work_long_side(range(0, 50, 10), 50) == DENSE_WORK_LONG_SIDE  # every 10: short chains everywhere
+    assert auto_work_long_side([0], 50) == WORK_LONG_SIDE                    # first frame only: a 49-frame chain
+    assert auto_work_long_side([20, 30], 40) == WORK_LONG_SIDE               # 20 frames before the first keyframe
+    assert auto_work_long_side([0, 60, 120], 121) == WORK_LONG_SIDE
+
+
 def test_filter_objects_and_argmax_match_the_plain_versions():
-    from interreal.masks.track import _argmax_labels, filter_objects
+    from interreal.masks.track import _argmax_channels, _argmax_labels, filter_objects
 
     rng = np.random.default_rng(0)
     for k in (1, 3):
@@ -412,3 +421,4 @@ def test_filter_objects_and_argmax_match_the_plain_versions():
         idx = np.argmax(soft, -1) + 1
         idx[idx == k + 1] = 0
         assert np.array_equal(_argmax_labels(soft), idx)
+        assert np.array_equal(_argmax_channels(soft), np.argmax(soft, -1))

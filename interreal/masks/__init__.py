@@ -20,8 +20,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="folder of keyframe annotations: <frame id>.png index masks or <frame id>.json LabelMe")
     p.add_argument("--suggest", type=int, default=5, metavar="N",
                    help="print the N frames where one more keyframe would help most (default 5)")
-    p.add_argument("--work-size", type=int, default=480, metavar="PX",
-                   help="long side of the flow/propagation resolution (0 = full size; default 480)")
+    p.add_argument("--work-size", type=int, default=-1, metavar="PX",
+                   help="long side of the flow/propagation resolution (0 = full size; default auto: 400 when "
+                        "every keyframe gap is at most 12 frames, else 480)")
     p.add_argument("--flow", choices=("dis", "rlof", "farneback"), default="dis", help="optical flow (default dis)")
     p.add_argument("--preset", choices=("ultrafast", "fast", "medium"), default="fast", help="DIS preset")
     p.add_argument("--appearance", type=float, default=0.25, help="weight of the colour model (0 = off)")

@@ -62,9 +62,10 @@ class ColourModel:
         hist /= hist.sum(1, keepdims=True)
         return cls(hist.astype(np.float32), cfg, counts)
 
-    def ratio(self, image: np.ndarray) -> np.ndarray:
-        """(h, w, K+1) likelihood of each label, normalised over labels, raised to the configured weight."""
-        return self.table[quantize(image, self.cfg.bins)]
+    def ratio(self, bins: np.ndarray) -> np.ndarray:
+        """Colour bins (h, w) from `quantize` -> (h, w, K+1) likelihood of each label, normalised over labels,
+        raised to the configured weight. Bins, not the image: a frame's bins serve both chains and the vote."""
+        return self.table[bins]
 
 
 def joint_log_table(models: list[ColourModel]) -> np.ndarray:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +22,7 @@ from .flow import FlowConfig
 from .keyframes import load_keyframes
 from ..video import VideoWriter
 from .preview import contact_sheet, thumb
-from .track import Propagator, TrackConfig
+from .track import Propagator, TrackConfig, auto_work_long_side
 
 SFM_MASKS_DIR = "sfm_masks"
 PREVIEWS_DIR = "previews"
@@ -33,7 +33,7 @@ PREVIEW_KINDS = ("sheet", "video", "both", "none")
 # (stress suite, 40-frame captures: usable runs had 45-63 % flagged at IoU >= 0.89, unusable ones 71-92 %)
 UNRELIABLE_FRACTION = 0.7
 
-def make_config(work_long_side: int = 480, flow: str = "dis", preset: str = "fast", appearance: float = 0.25,
+def make_config(work_long_side: int = -1, flow: str = "dis", preset: str = "fast", appearance: float = 0.25,
                 rigid: float = 1.0, fusion: bool = True, refine: bool = True) -> TrackConfig:
     """A TrackConfig from the user-facing options."""
     return TrackConfig(flow=FlowConfig(method=flow, preset=preset), appearance=AppearanceConfig(weight=appearance),
@@ -49,7 +49,7 @@ def dataset_frames(ds: Path) -> list[Path]:
     return sorted(images, key=frame_index)
 
 
-def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int = 480, flow: str = "dis",
+def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int = -1, flow: str = "dis",
               preset: str = "fast", appearance: float = 0.25, rigid: float = 1.0, fusion: bool = True,
               refine: bool = True, suggest: int = 5, preview: str = "both", sfm_dilate: int | None = None,
               progress: bool = True, config: TrackConfig | None = None) -> dict[str, Any]:
@@ -86,6 +86,8 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
     t_kf = time.perf_counter() - t0
     n_obj = len(kf.names)
     anchors = {pos_of[f]: m for f, m in kf.masks.items()}
+    if cfg.work_long_side < 0:
+        cfg = replace(cfg, work_long_side=auto_work_long_side(anchors, len(fids)))
     inputs = {"keyframes_dir": str(keyframes_dir), "keyframes": kf.sources, "frames": len(fids),
               "size": list(size), "objects": kf.names}
     settings = {**asdict(cfg), "suggest": suggest, "preview": preview}

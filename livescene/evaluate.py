@@ -135,6 +135,27 @@ def novel_states(train_states: np.ndarray, rng: np.random.Generator, tries: int 
     return np.asarray(best, dtype=np.float64), best_d
 
 
+def composition_states(states: np.ndarray, centres: np.ndarray, train: list[int], i: int, near: int = 0,
+                       levels: int = 5) -> tuple[np.ndarray, float] | None:
+    """For camera i: a combination of states, each object's state seen from near this camera in training, that is
+    far (L-inf) from every training frame's combination; None when the nearby states allow no new combination.
+
+    Separates composing parts (the model's claim) from rendering a part at a state it was never seen in from
+    this side (an extrapolation no data supports). states (N, M); centres (N, 3) camera centres."""
+    m = states.shape[1]
+    tr = np.asarray(train)
+    near = near or max(8, len(tr) // 10)
+    close = tr[np.argsort(np.linalg.norm(centres[tr] - centres[i], axis=1))[:near]]
+    options = []
+    for o in range(m):
+        seen = np.unique(np.round(states[close, o] * 20) / 20)
+        options.append(seen[np.linspace(0, len(seen) - 1, min(levels, len(seen))).round().astype(int)])
+    grids = np.stack(np.meshgrid(*options, indexing="ij"), -1).reshape(-1, m)
+    dist = np.abs(states[tr][None] - grids[:, None]).max(-1).min(1)
+    best = int(np.argmax(dist))
+    return (grids[best], float(dist[best])) if dist[best] >= 0.1 else None
+
+
 def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: float = 1.0, novel: int = 4,
              seed: int = 0, progress: bool = True) -> dict[str, Any]:
     from tqdm import tqdm
@@ -211,6 +232,25 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
         result["novel_state_psnr"] = float(np.mean(scores))
         result["true_state_sim_psnr"] = float(np.mean(base))
         result["novel_state_distance"] = float(np.mean(dists))
+        result["novel_frames"] = [{"frame": views.dataset.frames[i].fid, "psnr": sc, "true_state_psnr": b}
+                                  for i, sc, b in zip(pick_frames(views.held_out, novel), scores, base)]
+        # composition: new combinations of states each seen from near the camera
+        centres = np.asarray(views.c2w_gl)[:, :3, 3]
+        comp = []
+        for i in pick_frames(views.held_out, novel):
+            pick = composition_states(truth.states, centres, views.train, i)
+            if pick is None:
+                continue
+            intr = views.intrinsics[i]
+            if scale != 1.0:
+                intr = intr.scaled(max(1, round(intr.w * scale)), max(1, round(intr.h * scale)))
+            st, d = pick
+            ref = truth.render(i, st, intr).astype(np.float32) / 255.0
+            out = render_view(run, views.c2w_gl[i], intr, st.astype(np.float32), time=float(views.times[i]))
+            comp.append({"frame": views.dataset.frames[i].fid, "states": [round(float(v), 3) for v in st],
+                         "distance": round(d, 3), "psnr": psnr(np.mean((out["rgb"] - ref) ** 2))})
+        result["composition_frames"] = comp
+        result["composition_psnr"] = float(np.mean([c["psnr"] for c in comp])) if comp else None
     result["frames"] = per_frame
     return result
 

@@ -142,7 +142,8 @@ def train_and_eval(ds: Path, cap: Path, run_dir: Path, minutes: float, box: list
             "eval_minutes": round((time.perf_counter() - t1) / 60, 2), "steps": summary["steps"],
             "psnr": res["psnr"], "ssim": res["ssim"], "state_mae": res.get("state_mae"),
             "state_mae_max": res.get("state_mae_max"), "novel_state_psnr": res.get("novel_state_psnr"),
-            "true_state_sim_psnr": res.get("true_state_sim_psnr"),
+            "true_state_sim_psnr": res.get("true_state_sim_psnr"), "composition_psnr": res.get("composition_psnr"),
+            "novel_frames": res.get("novel_frames"), "composition_frames": res.get("composition_frames"),
             "mask_iou": res.get("mask_iou"), "depth_l1": res.get("depth_l1"), "params": summary["params"],
             "reject_threshold": res["reject_threshold"], "eval_scale": EVAL_SCALE, "eval_frames": res["held_out_frames"],
             "curve": curve}
@@ -256,7 +257,9 @@ def main() -> int:
                        progress=False)
         runs = [r for r in runs if r["variant"] != "main"]
         rec = {**(old[0] if old else {}), **{k: res.get(k) for k in ("psnr", "ssim", "state_mae", "novel_state_psnr",
-                                                                      "true_state_sim_psnr", "mask_iou", "depth_l1")}}
+                                                                      "true_state_sim_psnr", "composition_psnr",
+                                                                      "novel_frames", "composition_frames",
+                                                                      "mask_iou", "depth_l1")}}
         rec.pop("variant", None)
         rec.pop("data", None)
         rec.pop("label_fraction", None)

@@ -293,3 +293,28 @@ def test_auto_threads_look_at_other_processes_not_the_load_average(monkeypatch):
         assert device.configure_threads(3) == 3
     finally:
         torch.set_num_threads(before)
+
+
+def test_novel_and_composition_states_are_far_from_every_training_combination():
+    """Novel states: far from every training combination. Composition states: also far, but built only from states
+    each object shows near the camera (so they test composing parts, not rendering an unseen side of a part)."""
+    from livescene.evaluate import composition_states, novel_states
+
+    t = np.linspace(0, 1, 40)
+    # object 0 opens during the first half while the camera is on the left, object 1 during the second half
+    states = np.stack([np.clip(t * 2, 0, 1), np.clip(t * 2 - 1, 0, 1)], 1)
+    centres = np.stack([t * 4 - 2, np.zeros_like(t), np.zeros_like(t)], 1)
+    train = [i for i in range(40) if i % 8 != 4]
+    st, d = novel_states(states[train], np.random.default_rng(0))
+    assert d >= 0.25 and np.abs(states[train] - st).max(1).min() == d
+    # in the middle both objects move near the camera: (object 0 half open, object 1 closed) never happens with
+    # the camera there, yet each state is seen nearby
+    pick = composition_states(states, centres, train, 20, near=12)
+    assert pick is not None
+    st, d = pick
+    assert d >= 0.1 and np.abs(states[train] - st).max(1).min() == pytest.approx(d)
+    near = np.argsort(np.abs(centres[train, 0] - centres[20, 0]))[:12]
+    for o in range(2):
+        assert np.abs(states[np.asarray(train)[near], o] - st[o]).min() <= 0.05 + 1e-9
+    # at the start only object 0 moves: every nearby combination was seen, so there is nothing to compose
+    assert composition_states(states, centres, train, 4, near=6) is None

@@ -69,9 +69,32 @@ def compare_poses(est_c2w: np.ndarray, ref_c2w: np.ndarray) -> dict[str, float]:
     c = (s * (R @ est_c2w[:, :3, 3].T)).T + t
     extent = float(np.linalg.norm(ref_c2w[:, :3, 3].max(0) - ref_c2w[:, :3, 3].min(0)))
     cerr = np.linalg.norm(c - ref_c2w[:, :3, 3], axis=1) / max(extent, 1e-12) * 100
-    Ra = R @ est_c2w[:, :3, :3]
-    cosang = (np.einsum("nij,nij->n", Ra, ref_c2w[:, :3, :3]) - 1) / 2
-    rerr = np.degrees(np.arccos(np.clip(cosang, -1, 1)))
+    rerr = _angles(R, est_c2w[:, :3, :3], ref_c2w[:, :3, :3])
+    # The same errors with the gauge's rotation fitted to the rotations themselves (robust rotation average), as
+    # rotation-averaging benchmarks report them: the centre fit above tilts every rotation by however much centre
+    # noise turns the fitted path (measured 0.03 deg with masks, 0.4 deg without, on the simulated capture).
+    rerr_rot = _angles(rotation_gauge(est_c2w[:, :3, :3], ref_c2w[:, :3, :3]), est_c2w[:, :3, :3], ref_c2w[:, :3, :3])
     return {"rot_err_deg_median": float(np.median(rerr)), "rot_err_deg_max": float(rerr.max()),
+            "rot_err_deg_median_rotation_gauge": float(np.median(rerr_rot)),
             "center_err_pct_median": float(np.median(cerr)), "center_err_pct_max": float(cerr.max()),
             "scale": s}
+
+
+def _angles(G: np.ndarray, est_R: np.ndarray, ref_R: np.ndarray) -> np.ndarray:
+    """Angle (deg) of G est_i vs ref_i for rotation stacks (N, 3, 3)."""
+    cosang = (np.einsum("nij,nij->n", G @ est_R, ref_R) - 1) / 2
+    return np.degrees(np.arccos(np.clip(cosang, -1, 1)))
+
+
+def rotation_gauge(est_R: np.ndarray, ref_R: np.ndarray, iters: int = 20) -> np.ndarray:
+    """The rotation G that best maps est_i onto ref_i (N, 3, 3): chordal mean, then Weiszfeld steps towards the
+    geodesic L1 mean, so a few bad cameras do not tilt it."""
+    from scipy.spatial.transform import Rotation
+
+    U, _, Vt = np.linalg.svd(np.einsum("nij,nkj->ik", ref_R, est_R))
+    G = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    for _ in range(iters):
+        res = Rotation.from_matrix(np.einsum("ij,njk,nlk->nil", G, est_R, ref_R)).as_rotvec()  # G est ref^T
+        w = 1.0 / np.maximum(np.linalg.norm(res, axis=1), 1e-9)
+        G = Rotation.from_rotvec(-(w[:, None] * res).sum(0) / w.sum()).as_matrix() @ G
+    return G

@@ -278,7 +278,7 @@ def main(args) -> int:
     truth = CaptureTruth(args.gt, run.views) if args.gt else None
     res = evaluate(run, truth, max_frames=args.max_frames, scale=args.scale, novel=args.novel)
     atomic.write_json(args.out, res)
-    keys = ["psnr", "ssim", "mask_iou", "depth_l1", "state_mae", "novel_state_psnr"]
+    keys = ["psnr", "ssim", "mask_iou", "depth_l1", "state_mae", "novel_state_psnr", "composition_psnr"]
     print("livescene eval: " + ", ".join(f"{k} {res[k]:.4g}" for k in keys if res.get(k) is not None)
           + f" -> {args.out}")
     return 0

@@ -21,7 +21,8 @@ BENCHES = ["synth", "poses", "masks", "train", "ground", "model_size", "stress"]
 # columns shown per benchmark (others stay in the JSON)
 COLUMNS: dict[str, list[str]] = {
     "synth": ["variant", "frames", "size", "wall_s", "fps", "reproj_err"],
-    "poses": ["data", "variant", "registered", "total", "rot_err_deg_median", "center_err_pct_median", "wall_s"],
+    "poses": ["data", "variant", "registered", "total", "rot_err_deg_median", "rot_err_deg_median_rotation_gauge",
+              "center_err_pct_median", "wall_s"],
     "masks": ["data", "variant", "keyframe_every", "iou_mean", "fps"],
     "train": ["data", "variant", "minutes", "steps", "psnr", "ssim", "state_mae", "novel_state_psnr", "mask_iou",
               "params", "label_fraction"],

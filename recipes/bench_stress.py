@@ -177,11 +177,14 @@ def _failed_stage(ds: Path) -> str:
 
 
 def run_suite(stresses: dict[str, tuple[str, list, list, bool]], quick: bool, work: Path,
-              runner: Callable[..., LevelResult] = run_level) -> list[dict[str, Any]]:
+              runner: Callable[..., LevelResult] = run_level, levels: set[str] | None = None) -> list[dict[str, Any]]:
+    """Every level of every stress (`levels`: only those whose str() is in it)."""
     frames, size, steps = (40, (320, 240), 300) if quick else (90, (320, 240), 1500)
     rows: list[dict[str, Any]] = []
     for stress, (field, q_levels, f_levels, train) in stresses.items():
         for level in (q_levels if quick else f_levels):
+            if levels and str(level) not in levels:
+                continue
             t0 = time.perf_counter()
             try:
                 res = runner(stress, field, level, train, work / stress, frames, size, steps)
@@ -223,10 +226,17 @@ def charts(rows: list[dict[str, Any]], out: Path) -> list[Path]:
 
 
 def main() -> int:
-    args = bench_args("stress", __doc__.splitlines()[0], lambda p: p.add_argument(
-        "--only", default="", help="comma-separated stresses to run (default all)"))
+    def extra(p) -> None:
+        p.add_argument("--only", default="", help="comma-separated stresses to run (default all)")
+        p.add_argument("--levels", default="", help="comma-separated levels to run (default all), e.g. --only objects "
+                                                    "--levels 10")
+
+    args = bench_args("stress", __doc__.splitlines()[0], extra)
+    unknown = set(filter(None, args.only.split(","))) - set(STRESSES)
+    if unknown:
+        raise SystemExit(f"unknown stress(es) {sorted(unknown)}; choose from {sorted(STRESSES)}")
     chosen = {k: v for k, v in STRESSES.items() if not args.only or k in args.only.split(",")}
-    rows = run_suite(chosen, args.quick, args.out / "stress_work")
+    rows = run_suite(chosen, args.quick, args.out / "stress_work", levels=set(filter(None, args.levels.split(","))))
     silent = silent_failures(rows)
     write_results(args.out, "stress", rows, quick=args.quick, silent_failures=len(silent), thresholds=THRESHOLDS)
     charts(rows, args.out)

@@ -219,3 +219,26 @@ def test_strided_mapping_registers_every_frame(tmp_path):
     assert err["rot_err_deg_median"] < 0.5 and err["center_err_pct_median"] < 0.3, err
     rep = json.loads((ds / "reports" / "poses.json").read_text())
     assert rep["ladder"][0]["stride"] == 3
+
+
+def test_rotation_error_in_both_gauges():
+    """compare_poses: the centre-fitted gauge carries centre noise into every rotation (a short path turns with its
+    noise); the rotation-fitted gauge recovers the true offset, so exact rotations score zero in it."""
+    from scipy.spatial.transform import Rotation
+
+    from interreal.scoring import compare_poses, rotation_gauge
+
+    rng = np.random.default_rng(0)
+    n = 40
+    ref = np.tile(np.eye(4), (n, 1, 1))
+    ref[:, :3, :3] = Rotation.from_rotvec(rng.normal(0, 0.3, (n, 3))).as_matrix()
+    ref[:, :3, 3] = np.stack([np.linspace(-1, 1, n), 0.1 * np.sin(np.linspace(0, 3, n)), np.zeros(n)], 1)
+    G = Rotation.from_rotvec([0.2, -0.1, 0.3]).as_matrix()
+    est = ref.copy()
+    est[:, :3, :3] = np.einsum("ij,njk->nik", G.T, ref[:, :3, :3])  # the same rotations in another frame
+    est[:, :3, 3] = 2.0 * ref[:, :3, 3] @ G + rng.normal(0, 0.002, (n, 3))  # scaled, rotated, noisy centres
+    assert np.allclose(rotation_gauge(est[:, :3, :3], ref[:, :3, :3]), G, atol=1e-6)
+    err = compare_poses(est, ref)
+    assert err["rot_err_deg_median_rotation_gauge"] < 1e-4
+    assert err["rot_err_deg_median"] > 0.01  # the centre fit tilts by what the noise turns the path
+    assert err["scale"] == pytest.approx(0.5, rel=0.01)

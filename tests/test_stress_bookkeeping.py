@@ -40,6 +40,12 @@ def test_rows_usable_detected_and_silent():
     assert [(r["level"], r["metric"]) for r in silent] == [("low", "mask_iou_min")]
 
 
+def test_level_filter_runs_only_the_named_levels():
+    suite = {"texture": ("texture", ["photo", "low", "none"], [], False)}
+    rows = bench_stress.run_suite(suite, quick=True, work=Path("/nonexistent"), runner=fake_runner, levels={"low"})
+    assert {r["level"] for r in rows} == {"low"}
+
+
 def test_thresholds_direction():
     assert bench_stress.is_usable("psnr", 30.0) and not bench_stress.is_usable("psnr", 10.0)
     assert bench_stress.is_usable("rot_err_deg", 0.1) and not bench_stress.is_usable("rot_err_deg", 5.0)

@@ -71,7 +71,14 @@ def build_model(cfg: TrainConfig, views: Views) -> tuple[TrainConfig, LiveSceneM
     """Resolve the scene-driven sizes and build the model (its parameter count ignores the object count)."""
     cfg = from_dict(cfg.to_dict())
     cfg.model = resolve_sizes(cfg.model, views.scene_info())
-    return cfg, LiveSceneModel(cfg.model, views.dataset.n_objects)
+    n = views.dataset.n_objects
+    if n > cfg.model.max_objects:
+        # more objects than slots: widen the slots (only the probability field's and the variable's input and
+        # output layers grow, a few hundred parameters per object) rather than refuse the scene
+        print(f"livescene train: {n} objects > {cfg.model.max_objects} object slots: using {n} slots",
+              file=sys.stderr)
+        cfg.model.max_objects = n
+    return cfg, LiveSceneModel(cfg.model, n)
 
 
 def _checkpoint_path(run_dir: Path, which: str | int | None) -> Path:

@@ -318,3 +318,15 @@ def test_novel_and_composition_states_are_far_from_every_training_combination():
         assert np.abs(states[np.asarray(train)[near], o] - st[o]).min() <= 0.05 + 1e-9
     # at the start only object 0 moves: every nearby combination was seen, so there is nothing to compose
     assert composition_states(states, centres, train, 4, near=6) is None
+
+
+def test_more_objects_than_slots_widens_the_slots(tmp_path, capsys):
+    """A scene with more objects than the preset's slots trains (the slots widen, with a note) and reopens."""
+    ds = toy_dataset(tmp_path / "ds", n_frames=8, size=(16, 12), n_objects=2)
+    cfg = load_preset("tiny")
+    cfg.model.max_objects = 1
+    cfg.steps = 2
+    train(ds, tmp_path / "run", cfg, device="cpu", show_progress=False)
+    assert "2 objects > 1 object slots" in capsys.readouterr().err
+    run = load_run(tmp_path / "run", device="cpu")
+    assert run.model.n_objects == 2 and run.config.model.max_objects == 2

@@ -305,3 +305,15 @@ def test_room_scale_resizes_the_room_and_leaves_the_default_unchanged():
     add_arguments(p)
     assert config_from_args(p.parse_args(["out", "--preset", "room-small"])).room_scale == 0.7
     assert config_from_args(p.parse_args(["out", "--preset", "room-small", "--room-scale", "1.2"])).room_scale == 1.2
+
+
+def test_every_part_gets_a_keyframe():
+    """A part that no regular keyframe shows is annotated where it shows most (a person would draw it somewhere)."""
+    from interreal.synth.capture import extra_keyframes
+
+    px = np.zeros((30, 3), np.int64)
+    px[:, 0] = 100          # always visible
+    px[12:18, 1] = [5, 40, 90, 60, 10, 2]  # only between the keyframes 10 and 20
+    # part 2 never visible: nothing to annotate
+    assert extra_keyframes(px, [0, 10, 20, 29]) == [14]
+    assert extra_keyframes(px, [0, 14, 29]) == []

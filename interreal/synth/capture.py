@@ -39,6 +39,16 @@ def keyframe_indices(frames: int, every: int) -> list[int]:
     return sorted(set(range(0, frames, every)) | {0, frames - 1})
 
 
+def extra_keyframes(visible_px: np.ndarray, keyframes: list[int]) -> list[int]:
+    """Frames to annotate as well, so every part is drawn on some keyframe (as a person annotating would): for each
+    part visible on no regular keyframe, the frame where it shows most. visible_px (frames, parts) pixel counts."""
+    extra = set()
+    for k in range(visible_px.shape[1]):
+        if visible_px[keyframes, k].sum() == 0 and visible_px[:, k].max() > 0:
+            extra.add(int(np.argmax(visible_px[:, k])))
+    return sorted(extra - set(keyframes))
+
+
 def label_indices(frames: int, fraction: float, keyframes: list[int]) -> list[int]:
     """Frames with annotated states: `fraction` of all frames, evenly spread, plus the keyframes."""
     n = int(round(fraction * frames))
@@ -106,6 +116,7 @@ def write_capture(cfg: SynthConfig, out_dir: str | Path, progress: bool = True,
     states = scene.states()
     names = scene.object_names
     scene.caster()  # the per-pixel rays, once, before the render threads start
+    visible_px = np.zeros((n, len(names)), np.int64)
     try:
         video = VideoWriter(stage / VIDEO, cfg.width, cfg.height, cfg.fps, cfg.crf)
         render_s = encode_s = write_s = 0.0
@@ -126,6 +137,7 @@ def write_capture(cfg: SynthConfig, out_dir: str | Path, progress: bool = True,
                 fid = fid_of_index(i)
                 (gt / "depth" / f"{fid}.png").write_bytes(depth_png)
                 (gt / "instance" / f"{fid}.png").write_bytes(inst_png)
+                visible_px[i] = np.bincount(r.instance.ravel(), minlength=256)[1:len(names) + 1]
                 if i in key_set:
                     (ann / "keyframes" / f"{fid}.png").write_bytes(_encode_png(annotation_index(r.instance), 3))
                 encode_s += t2 - t1
@@ -140,6 +152,11 @@ def write_capture(cfg: SynthConfig, out_dir: str | Path, progress: bool = True,
         timings["video_encode_s"] = encode_s
         timings["gt_write_s"] = write_s
 
+        for i in extra_keyframes(visible_px, keyframes):
+            fid = fid_of_index(i)
+            inst = cv2.imread(str(gt / "instance" / f"{fid}.png"), cv2.IMREAD_UNCHANGED)
+            (ann / "keyframes" / f"{fid}.png").write_bytes(_encode_png(annotation_index(inst), 3))
+            keyframes = sorted(set(keyframes) | {i})
         intr = scene.intrinsics
         mapping = {i: name for i, name in enumerate(names)}
         atomic.write_json(gt / "cameras.json", {

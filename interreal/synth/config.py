@@ -45,7 +45,7 @@ class SynthConfig:
     occluder: float = 0.0  # fraction of frames in which a person walks across the view (0 = none)
     articulation: float = 1.0  # scale of each part's range of motion (angle / slide length)
     room_scale: float = 1.0  # room floor plan and camera distance x this (furniture keeps its size; 0.7 small, 1.6 large)
-    keyframe_every: int = 60  # annotated keyframe masks: every Nth frame plus first and last
+    keyframe_every: int = 60  # annotated keyframe masks: every Nth frame, first, last, and where a part they miss shows most
     label_fraction: float = 0.1  # fraction of frames with annotated states (plus the keyframes)
     crf: int = 18  # H.264 quality
     threads: int = 2  # render threads

@@ -317,3 +317,31 @@ def test_every_part_gets_a_keyframe():
     # part 2 never visible: nothing to annotate
     assert extra_keyframes(px, [0, 10, 20, 29]) == [14]
     assert extra_keyframes(px, [0, 14, 29]) == []
+    # part 2 (id 3) never shows, so it is not named: ids after it move down; the occluding person is background
+    from interreal.synth.capture import annotation_index
+
+    lut = np.zeros(256, np.uint8)
+    lut[[1, 2, 4]] = [1, 2, 3]
+    assert annotation_index(np.array([[0, 1, 2, 4, 255]], np.uint8), lut).tolist() == [[0, 1, 2, 3, 0]]
+
+
+def test_ten_parts_annotations_name_only_what_the_video_shows(tmp_path):
+    """With many parts some stay out of view: the simulated person names only parts the video shows, draws each of
+    them on some keyframe (consecutive ids), and the truth keeps every part."""
+    import cv2
+    import yaml
+
+    from interreal.synth import SynthConfig, write_capture
+
+    cap = write_capture(SynthConfig(frames=12, width=64, height=48, parts=10, keyframe_every=6), tmp_path / "cap",
+                        progress=False)
+    gt_names = list(yaml.safe_load((cap / "gt" / "mapping.yaml").read_text()).values())
+    ann = yaml.safe_load((cap / "annotations" / "mapping.yaml").read_text())
+    assert len(gt_names) == 10 and sorted(ann) == list(range(len(ann)))
+    inst = np.stack([cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in sorted((cap / "gt" / "instance").glob("*.png"))])
+    seen = {gt_names[k] for k in range(10) if (inst == k + 1).any()}
+    assert set(ann.values()) == seen
+    keys = np.stack([cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in (cap / "annotations" / "keyframes").glob("*.png")])
+    assert set(np.unique(keys)) - {0} == set(range(1, len(ann) + 1))  # every named part is drawn somewhere
+    states = yaml.safe_load((cap / "annotations" / "states.yaml").read_text())
+    assert all(set(v) == seen for v in states.values())

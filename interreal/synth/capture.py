@@ -56,11 +56,12 @@ def label_indices(frames: int, fraction: float, keyframes: list[int]) -> list[in
     return sorted(set(spread) | set(keyframes))
 
 
-def annotation_index(instance: np.ndarray) -> np.ndarray:
-    """Keyframe mask a person would draw: the truth with the occluding person as background."""
+def annotation_index(instance: np.ndarray, lut: np.ndarray | None = None) -> np.ndarray:
+    """Keyframe mask a person would draw: the truth with the occluding person as background; `lut` (256,) renumbers
+    the parts when some never appear (a person names only what the video shows)."""
     out = instance.copy()
     out[out == 255] = 0
-    return out
+    return out if lut is None else lut[out]
 
 
 def _encode_png(img: np.ndarray, level: int = 1) -> bytes:
@@ -152,11 +153,19 @@ def write_capture(cfg: SynthConfig, out_dir: str | Path, progress: bool = True,
         timings["video_encode_s"] = encode_s
         timings["gt_write_s"] = write_s
 
-        for i in extra_keyframes(visible_px, keyframes):
+        # the simulated person annotates what the video shows: every part on some keyframe (extra keyframes where
+        # the regular ones miss a part), and parts that never appear are not named at all
+        shown = [k for k in range(len(names)) if visible_px[:, k].max() > 0]
+        lut = None
+        if len(shown) < len(names):
+            lut = np.zeros(256, np.uint8)
+            lut[[k + 1 for k in shown]] = np.arange(1, len(shown) + 1)
+        extra = extra_keyframes(visible_px, keyframes)
+        for i in extra if lut is None else sorted(set(keyframes) | set(extra)):
             fid = fid_of_index(i)
             inst = cv2.imread(str(gt / "instance" / f"{fid}.png"), cv2.IMREAD_UNCHANGED)
-            (ann / "keyframes" / f"{fid}.png").write_bytes(_encode_png(annotation_index(inst), 3))
-            keyframes = sorted(set(keyframes) | {i})
+            (ann / "keyframes" / f"{fid}.png").write_bytes(_encode_png(annotation_index(inst, lut), 3))
+        keyframes = sorted(set(keyframes) | set(extra))
         intr = scene.intrinsics
         mapping = {i: name for i, name in enumerate(names)}
         atomic.write_json(gt / "cameras.json", {
@@ -164,18 +173,20 @@ def write_capture(cfg: SynthConfig, out_dir: str | Path, progress: bool = True,
             "frames": [{"index": i, "transform_matrix": poses[i].tolist()} for i in range(n)],
         })
         atomic.write_json(gt / "states.json", {"objects": names, "values": states.tolist()})
-        for folder in (gt, ann, ann / "keyframes"):
-            atomic.write_yaml(folder / "mapping.yaml", mapping)
+        atomic.write_yaml(gt / "mapping.yaml", mapping)
+        for folder in (ann, ann / "keyframes"):
+            atomic.write_yaml(folder / "mapping.yaml", {j: names[k] for j, k in enumerate(shown)})
         atomic.write_yaml(gt / "prompts.yaml", scene.descriptions)
-        atomic.write_yaml(ann / "prompts.yaml", scene.descriptions)
-        labels = {frame_name(i): {name: float(states[i, k]) for k, name in enumerate(names)}
+        atomic.write_yaml(ann / "prompts.yaml", {names[k]: scene.descriptions[names[k]] for k in shown})
+        labels = {frame_name(i): {names[k]: float(states[i, k]) for k in shown}
                   for i in label_indices(n, cfg.label_fraction, keyframes)}
         atomic.write_yaml(ann / "states.yaml", labels)
         timings["total_s"] = time.perf_counter() - t_start
         timings["fps"] = n / timings["total_s"]
         meta = {
             "generator": f"interreal {__version__} synth", "config": cfg.to_dict(), "frames": n,
-            "size": [cfg.width, cfg.height], "objects": names, "descriptions": scene.descriptions,
+            "size": [cfg.width, cfg.height], "objects": names, "annotated_objects": [names[k] for k in shown],
+            "descriptions": scene.descriptions,
             "keyframes": keyframes, "label_frames": list(labels),
             "depth_scale": DEPTH_SCALE, "timings": {k: round(v, 4) for k, v in timings.items()},
             "visible_fraction": _visible_fraction(stage, n, len(names)),

@@ -253,3 +253,16 @@ def test_atomic_write_leaves_old_file_on_crash(tmp_path):
             1 / 0
     assert json.loads(p.read_text()) == {"v": 1}
     assert list(tmp_path.iterdir()) == [p]
+
+
+def test_atomic_write_gives_the_usual_file_mode(tmp_path):
+    """Not mkstemp's 0600: a dataset written by one user stays readable by the others, as open() would leave it."""
+    import os
+
+    from interreal import atomic
+
+    p = tmp_path / "b.json"
+    atomic.write_json(p, {"v": 1})
+    umask = os.umask(0)
+    os.umask(umask)
+    assert p.stat().st_mode & 0o777 == 0o666 & ~umask

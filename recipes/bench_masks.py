@@ -5,7 +5,8 @@ Data: DAVIS 2016 `blackswan` and `car-shadow` (../shared/data/davis2016, first f
 Each record: data, variant, keyframe_every (0 = first frame only), iou_mean (Jaccard, mean over the frames
 that were not given, per object, then over objects), iou_worst_object, fps (frames/s of the propagation
 itself, image decoding included, writing excluded; 2 threads; wall clock, so slowed by other load), cpu_fps
-(frames per CPU-second over all threads = one dedicated core; load-independent), frames, objects.
+(frames per CPU-second over all threads = one dedicated core; load-independent), frames, objects,
+worst_frames (per object, its five worst (frame, IoU) pairs: where propagation fails).
 
     python recipes/bench_masks.py --quick --out bench/
     python recipes/bench_masks.py --out bench/
@@ -94,9 +95,10 @@ def write_keyframes(folder: Path, gts: list[np.ndarray], keys: list[int], names:
     atomic.write_yaml(folder / "mapping.yaml", dict(enumerate(names)))
 
 
-def score(ds: Path, gts: list[np.ndarray], keys: list[int], n_obj: int) -> list[float]:
-    """Per object: mean Jaccard over the frames that were not given (both empty counts as 1)."""
-    per = [[] for _ in range(n_obj)]
+def score(ds: Path, gts: list[np.ndarray], keys: list[int], n_obj: int) -> tuple[list[float], list[list[tuple]]]:
+    """Per object: mean Jaccard over the frames that were not given (both empty counts as 1), and its five worst
+    (frame, IoU) pairs: where propagation fails."""
+    per: list[list[tuple[int, float]]] = [[] for _ in range(n_obj)]
     for i, gt in enumerate(gts):
         if i in keys:
             continue
@@ -105,8 +107,10 @@ def score(ds: Path, gts: list[np.ndarray], keys: list[int], n_obj: int) -> list[
         for k in range(n_obj):
             p, g = pred[..., k] & valid, (gt == k + 1)
             u = (p | g).sum()
-            per[k].append(float((p & g).sum() / u) if u else 1.0)
-    return [float(np.mean(x)) if x else float("nan") for x in per]
+            per[k].append((i, float((p & g).sum() / u) if u else 1.0))
+    means = [float(np.mean([v for _, v in x])) if x else float("nan") for x in per]
+    worst = [[(i, round(v, 3)) for i, v in sorted(x, key=lambda iv: iv[1])[:5]] for x in per]
+    return means, worst
 
 
 def run_one(data: str, ds: Path, gts, names, keys: list[int], every: int, variant: str, cfg, work: Path) -> dict:
@@ -117,14 +121,15 @@ def run_one(data: str, ds: Path, gts, names, keys: list[int], every: int, varian
     t0 = time.perf_counter()
     fig = propagate(ds, kdir, config=cfg, preview="none", suggest=3, progress=False)
     wall = time.perf_counter() - t0
-    ious = score(ds, gts, keys, len(names))
+    ious, worst = score(ds, gts, keys, len(names))
     conf = fig["confidence_mean"]
     return {"data": data, "variant": variant, "keyframe_every": every, "iou_mean": round(float(np.mean(ious)), 4),
             "iou_worst_object": round(min(ious), 4), "fps": fig["fps"], "cpu_fps": fig["cpu_fps"], "wall_s": round(wall, 2),
             "frames": len(gts), "objects": len(names), "width": int(gts[0].shape[1]), "height": int(gts[0].shape[0]),
             "confidence_mean": round(float(np.mean(list(conf.values()))), 4),
             "suggested": " ".join(fig["suggested_frames"]),
-            "per_object": "; ".join(f"{n}={v:.3f}" for n, v in zip(names, ious))}
+            "per_object": "; ".join(f"{n}={v:.3f}" for n, v in zip(names, ious)),
+            "worst_frames": {n: w for n, w in zip(names, worst)}}
 
 
 def main() -> int:

@@ -123,6 +123,22 @@ def pick_frames(frames: list[int], n: int) -> list[int]:
     return [frames[i] for i in np.linspace(0, len(frames) - 1, n).round().astype(int)]
 
 
+def view_intrinsics(views, i: int, scale: float) -> Intrinsics:
+    """Frame i's intrinsics at the evaluation's render scale."""
+    intr = views.intrinsics[i]
+    if scale == 1.0:
+        return intr
+    return intr.scaled(max(1, round(intr.w * scale)), max(1, round(intr.h * scale)))
+
+
+def state_psnr(run, truth: Truth, i: int, states: np.ndarray, intr: Intrinsics) -> float:
+    """PSNR of the run against the simulator, frame i's camera, both at the given states."""
+    ref = truth.render(i, states, intr).astype(np.float32) / 255.0
+    views = run.views
+    out = render_view(run, views.c2w_gl[i], intr, np.asarray(states, np.float32), time=float(views.times[i]))
+    return psnr(np.mean((out["rgb"] - ref) ** 2))
+
+
 def novel_states(train_states: np.ndarray, rng: np.random.Generator, tries: int = 200) -> tuple[np.ndarray, float]:
     """A state vector far (L-inf) from every training frame's states: (states, distance)."""
     m = train_states.shape[1]
@@ -167,9 +183,7 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
         raise LiveSceneError("the run has no held-out frames (holdout_every <= 1)")
     per_frame = []
     for i in tqdm(held, desc="eval held-out", disable=not progress):
-        intr = views.intrinsics[i]
-        if scale != 1.0:
-            intr = intr.scaled(max(1, round(intr.w * scale)), max(1, round(intr.h * scale)))
+        intr = view_intrinsics(views, i, scale)
         rgb, mask = load_frame(views, i)
         import cv2
 
@@ -214,41 +228,31 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
         rng = np.random.default_rng(seed)
         train_states = truth.states[views.train]
         scores, dists, base = [], [], []
-        for i in tqdm(pick_frames(views.held_out, novel), desc="eval novel states", disable=not progress):
-            intr = views.intrinsics[i]
-            if scale != 1.0:
-                intr = intr.scaled(max(1, round(intr.w * scale)), max(1, round(intr.h * scale)))
+        novel_cams = pick_frames(views.held_out, novel)
+        for i in tqdm(novel_cams, desc="eval novel states", disable=not progress):
+            intr = view_intrinsics(views, i, scale)
             st, d = novel_states(train_states, rng)
-            ref = truth.render(i, st, intr).astype(np.float32) / 255.0
-            out = render_view(run, views.c2w_gl[i], intr, st.astype(np.float32), time=float(views.times[i]))
-            scores.append(psnr(np.mean((out["rgb"] - ref) ** 2)))
+            scores.append(state_psnr(run, truth, i, st, intr))
             dists.append(d)
             # the same camera at the frame's true states, against the same renderer: separates "new state"
             # from "simulator render vs recorded frame"
-            true_st = truth.states[i]
-            ref_t = truth.render(i, true_st, intr).astype(np.float32) / 255.0
-            out_t = render_view(run, views.c2w_gl[i], intr, true_st.astype(np.float32), time=float(views.times[i]))
-            base.append(psnr(np.mean((out_t["rgb"] - ref_t) ** 2)))
+            base.append(state_psnr(run, truth, i, truth.states[i], intr))
         result["novel_state_psnr"] = float(np.mean(scores))
         result["true_state_sim_psnr"] = float(np.mean(base))
         result["novel_state_distance"] = float(np.mean(dists))
         result["novel_frames"] = [{"frame": views.dataset.frames[i].fid, "psnr": sc, "true_state_psnr": b}
-                                  for i, sc, b in zip(pick_frames(views.held_out, novel), scores, base)]
+                                  for i, sc, b in zip(novel_cams, scores, base)]
         # composition: new combinations of states each seen from near the camera
         centres = np.asarray(views.c2w_gl)[:, :3, 3]
         comp = []
-        for i in pick_frames(views.held_out, novel):
+        for i in novel_cams:
             pick = composition_states(truth.states, centres, views.train, i)
             if pick is None:
                 continue
-            intr = views.intrinsics[i]
-            if scale != 1.0:
-                intr = intr.scaled(max(1, round(intr.w * scale)), max(1, round(intr.h * scale)))
+            intr = view_intrinsics(views, i, scale)
             st, d = pick
-            ref = truth.render(i, st, intr).astype(np.float32) / 255.0
-            out = render_view(run, views.c2w_gl[i], intr, st.astype(np.float32), time=float(views.times[i]))
             comp.append({"frame": views.dataset.frames[i].fid, "states": [round(float(v), 3) for v in st],
-                         "distance": round(d, 3), "psnr": psnr(np.mean((out["rgb"] - ref) ** 2))})
+                         "distance": round(d, 3), "psnr": state_psnr(run, truth, i, st, intr)})
         result["composition_frames"] = comp
         result["composition_psnr"] = float(np.mean([c["psnr"] for c in comp])) if comp else None
     result["frames"] = per_frame

@@ -26,6 +26,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchlib import bench_args, print_table, write_results  # noqa: E402
 
+# evaluation figures copied into a run record (a re-evaluation replaces exactly these)
+EVAL_KEYS = ("psnr", "ssim", "state_mae", "novel_state_psnr", "true_state_sim_psnr", "composition_psnr", "novel_frames",
+             "composition_frames", "mask_iou", "depth_l1")
 COLUMNS = ["data", "variant", "minutes", "steps", "psnr", "ssim", "state_mae", "novel_state_psnr", "mask_iou",
            "params", "label_fraction"]
 
@@ -140,11 +143,7 @@ def train_and_eval(ds: Path, cap: Path, run_dir: Path, minutes: float, box: list
     curve = [(r["elapsed_s"] / 60, r["psnr"]) for r in curve if r.get("type") == "eval"]
     return {"minutes": round(summary["elapsed_s"] / 60, 2), "wall_minutes": round(wall / 60, 2),
             "eval_minutes": round((time.perf_counter() - t1) / 60, 2), "steps": summary["steps"],
-            "psnr": res["psnr"], "ssim": res["ssim"], "state_mae": res.get("state_mae"),
-            "state_mae_max": res.get("state_mae_max"), "novel_state_psnr": res.get("novel_state_psnr"),
-            "true_state_sim_psnr": res.get("true_state_sim_psnr"), "composition_psnr": res.get("composition_psnr"),
-            "novel_frames": res.get("novel_frames"), "composition_frames": res.get("composition_frames"),
-            "mask_iou": res.get("mask_iou"), "depth_l1": res.get("depth_l1"), "params": summary["params"],
+            **{k: res.get(k) for k in EVAL_KEYS}, "state_mae_max": res.get("state_mae_max"), "params": summary["params"],
             "reject_threshold": res["reject_threshold"], "eval_scale": EVAL_SCALE, "eval_frames": res["held_out_frames"],
             "curve": curve}
 
@@ -256,10 +255,7 @@ def main() -> int:
         res = evaluate(run, CaptureTruth(cap, run.views), max_frames=eval_frames, scale=EVAL_SCALE, novel=NOVEL,
                        progress=False)
         runs = [r for r in runs if r["variant"] != "main"]
-        rec = {**(old[0] if old else {}), **{k: res.get(k) for k in ("psnr", "ssim", "state_mae", "novel_state_psnr",
-                                                                      "true_state_sim_psnr", "composition_psnr",
-                                                                      "novel_frames", "composition_frames",
-                                                                      "mask_iou", "depth_l1")}}
+        rec = {**(old[0] if old else {}), **{k: res.get(k) for k in EVAL_KEYS}}
         rec.pop("variant", None)
         rec.pop("data", None)
         rec.pop("label_fraction", None)

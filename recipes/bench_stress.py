@@ -177,13 +177,18 @@ def _failed_stage(ds: Path) -> str:
 
 
 def run_suite(stresses: dict[str, tuple[str, list, list, bool]], quick: bool, work: Path,
-              runner: Callable[..., LevelResult] = run_level, levels: set[str] | None = None) -> list[dict[str, Any]]:
-    """Every level of every stress (`levels`: only those whose str() is in it)."""
+              runner: Callable[..., LevelResult] = run_level, levels: set[str] | None = None,
+              done: list[dict[str, Any]] | None = None,
+              on_level: Callable[[list[dict[str, Any]]], None] | None = None) -> list[dict[str, Any]]:
+    """Every level of every stress (`levels`: only those whose str() is in it). Rows in `done` (an earlier,
+    interrupted run) are kept and their levels skipped; `on_level` gets all rows so far after each level, so a
+    killed run loses one level at most."""
     frames, size, steps = (40, (320, 240), 300) if quick else (90, (320, 240), 1500)
-    rows: list[dict[str, Any]] = []
+    rows: list[dict[str, Any]] = list(done or [])
+    finished = {(r["stress"], str(r["level"])) for r in rows}
     for stress, (field, q_levels, f_levels, train) in stresses.items():
         for level in (q_levels if quick else f_levels):
-            if levels and str(level) not in levels:
+            if (levels and str(level) not in levels) or (stress, str(level)) in finished:
                 continue
             t0 = time.perf_counter()
             try:
@@ -200,7 +205,18 @@ def run_suite(stresses: dict[str, tuple[str, list, list, bool]], quick: bool, wo
             print(f"[stress] {stress}={level}: " + ", ".join(f"{r['metric']}={_fmt(r['value'])}"
                                                            f"{'' if r['usable'] else ' (!' + ('detected' if r['detected'] else 'SILENT') + ')'}"
                                                            for r in new), flush=True)
+            if on_level is not None:
+                on_level(rows)
     return rows
+
+
+def earlier_rows(path: Path, quick: bool) -> list[dict[str, Any]]:
+    """The rows of an earlier run in the same mode (quick or full) at `path`, to resume it; [] if none."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return []
+    return list(data.get("runs", [])) if bool(data.get("quick")) == bool(quick) else []
 
 
 def _fmt(v: Any) -> str:
@@ -230,15 +246,24 @@ def main() -> int:
         p.add_argument("--only", default="", help="comma-separated stresses to run (default all)")
         p.add_argument("--levels", default="", help="comma-separated levels to run (default all), e.g. --only objects "
                                                     "--levels 10")
+        p.add_argument("--fresh", action="store_true", help="redo levels already in DIR/stress.json (default: an "
+                                                            "earlier run in the same mode is resumed and extended)")
 
     args = bench_args("stress", __doc__.splitlines()[0], extra)
     unknown = set(filter(None, args.only.split(","))) - set(STRESSES)
     if unknown:
         raise SystemExit(f"unknown stress(es) {sorted(unknown)}; choose from {sorted(STRESSES)}")
     chosen = {k: v for k, v in STRESSES.items() if not args.only or k in args.only.split(",")}
-    rows = run_suite(chosen, args.quick, args.out / "stress_work", levels=set(filter(None, args.levels.split(","))))
+    done = [] if args.fresh else earlier_rows(args.out / "stress.json", args.quick)
+
+    def save(rows: list[dict[str, Any]], complete: bool = False) -> None:
+        write_results(args.out, "stress", rows, quick=args.quick, complete=complete,
+                      silent_failures=len(silent_failures(rows)), thresholds=THRESHOLDS)
+
+    rows = run_suite(chosen, args.quick, args.out / "stress_work", levels=set(filter(None, args.levels.split(","))),
+                     done=done, on_level=save)
     silent = silent_failures(rows)
-    write_results(args.out, "stress", rows, quick=args.quick, silent_failures=len(silent), thresholds=THRESHOLDS)
+    save(rows, complete=True)
     charts(rows, args.out)
     # the required stress.png: value against level for every metric, one panel per metric
     _overview(rows, args.out / "stress.png")

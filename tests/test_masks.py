@@ -422,3 +422,44 @@ def test_filter_objects_and_argmax_match_the_plain_versions():
         idx[idx == k + 1] = 0
         assert np.array_equal(_argmax_labels(soft), idx)
         assert np.array_equal(_argmax_channels(soft), np.argmax(soft, -1))
+
+
+def test_keyframe_reach_counts_view_motion_from_the_nearest_keyframe():
+    from interreal.masks.confidence import keyframe_reach, reach_suggestion
+
+    motion = np.full(19, 0.01)  # 20 frames, the view moves 1 % of its width per frame
+    motion[10:15] = 0.05        # ... and fast between frames 10 and 15
+    reach = keyframe_reach(motion, [5, 15])
+    assert [(a, b) for a, b, _ in reach] == [(0, 4), (6, 14), (16, 19)]
+    assert np.allclose([r for _, _, r in reach], [0.05, (5 * 0.01 + 5 * 0.05) / 2, 0.04])  # one-sided ends: whole
+    assert reach_suggestion(motion, 6, 14, [5, 15]) in (11, 12)  # halfway by motion, not by frame count (10)
+    assert reach_suggestion(motion, 0, 4, [5, 15]) == 0 and reach_suggestion(motion, 16, 19, [5, 15]) == 19
+    assert keyframe_reach(motion, list(range(20))) == []
+
+
+def panning_sequence(n: int, speed: int, w: int = 128, h: int = 96) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """A camera panning `speed` px per frame over a textured wall with a red disk painted on it."""
+    rng = np.random.default_rng(3)
+    wall = cv2.GaussianBlur(rng.integers(0, 255, (h, w + n * speed, 3), dtype=np.uint8), (0, 0), 2.0)
+    lab = np.zeros(wall.shape[:2], np.uint8)
+    cv2.circle(lab, (w // 2 + n * speed // 2, h // 2), 18, 1, -1)
+    wall[lab > 0] = (210, 40, 40)
+    return ([wall[:, t * speed:t * speed + w].copy() for t in range(n)],
+            [lab[:, t * speed:t * speed + w].copy() for t in range(n)])
+
+
+def test_fast_view_motion_between_keyframes_is_reported(tmp_path):
+    from interreal.masks.stage import MAX_REACH
+
+    images, truths = panning_sequence(16, 4)  # 3 % of the width per frame
+    ds = make_ds(tmp_path, images)
+    out = {}
+    for name, keys in (("sparse", [0, 15]), ("dense", [0, 3, 6, 9, 12, 15])):
+        propagate(ds, write_keys(tmp_path / name, truths, keys, ["disk"]), preview="none", suggest=0, progress=False)
+        out[name] = json.loads((ds / "reports" / "masks.json").read_text())
+    sparse, dense = out["sparse"]["figures"], out["dense"]["figures"]
+    assert 0.2 < sparse["max_keyframe_reach"] < 0.26  # 15 frames x 3.1 %, halved: reached from both ends
+    assert dense["max_keyframe_reach"] < MAX_REACH
+    warned = [w for w in out["sparse"]["warnings"] if w["cause"] == "masks-unreliable"]
+    assert len(warned) == 1 and ("00007" in warned[0]["message"] or "00008" in warned[0]["message"])
+    assert not [w for w in out["dense"]["warnings"] if w["cause"] == "masks-unreliable"]

@@ -104,3 +104,24 @@ def test_trainer_warns_when_learned_states_miss_held_out_labels():
     bad[8] = 0.2  # the held-out labelled frame 8 is missed by 0.8 -> mean error 0.4 over frames 0 and 8
     warned = state_warnings(bad, views)
     assert len(warned) == 1 and "held-out" in warned[0][0] and warned[0][1] == "states-unreliable"
+
+
+def test_a_resumed_run_keeps_earlier_rows_and_skips_their_levels(tmp_path):
+    suite = {"texture": ("texture", ["photo", "low", "none"], [], False)}
+    saved = []
+    first = bench_stress.run_suite(suite, quick=True, work=tmp_path, runner=fake_runner, levels={"photo"},
+                                   on_level=lambda rows: saved.append(len(rows)))
+    assert saved == [3]  # written after the level, not only at the end
+    calls = []
+
+    def counting(stress, field, level, *a):
+        calls.append(level)
+        return fake_runner(stress, field, level, *a)
+
+    rows = bench_stress.run_suite(suite, quick=True, work=tmp_path, runner=counting, done=first)
+    assert calls == ["low", "none"] and [r["level"] for r in rows[:3]] == ["photo"] * 3
+    import json
+
+    (tmp_path / "stress.json").write_text(json.dumps({"quick": True, "runs": first}))
+    assert bench_stress.earlier_rows(tmp_path / "stress.json", quick=True) == first
+    assert bench_stress.earlier_rows(tmp_path / "stress.json", quick=False) == []  # another mode: start afresh

@@ -74,3 +74,35 @@ def suggest_frames(conf: np.ndarray, keyframe: np.ndarray, n: int, tau: float | 
         picks.append(i)
         u = u * (1.0 - np.exp(-np.abs(t - i) / tau))
     return picks
+
+
+def keyframe_reach(motion: np.ndarray, keys: list[int]) -> list[tuple[int, int, float]]:
+    """How far (in image widths of view motion) each stretch of propagated frames lies from its nearest keyframe.
+
+    motion (n - 1,): the view's displacement from frame t to t + 1 (median flow / width). Propagation error
+    grows with the distance the chains travel, not with the frame count: a gap is reached from both ends, so
+    its worst frame sits half its motion away; the stretches before the first and after the last keyframe are
+    reached from one end only. Returns (first frame, last frame, reach) per stretch, in frame order.
+    """
+    n = len(motion) + 1
+    keys = sorted(keys)
+    out: list[tuple[int, int, float]] = []
+    if keys[0] > 0:
+        out.append((0, keys[0] - 1, float(motion[:keys[0]].sum())))
+    for a, b in zip(keys[:-1], keys[1:]):
+        if b > a + 1:
+            out.append((a + 1, b - 1, float(motion[a:b].sum()) / 2.0))
+    if keys[-1] < n - 1:
+        out.append((keys[-1] + 1, n - 1, float(motion[keys[-1]:].sum())))
+    return out
+
+
+def reach_suggestion(motion: np.ndarray, first: int, last: int, keys: list[int]) -> int:
+    """The frame of a stretch that a new keyframe should go to: halfway (by motion) between the keyframes around
+    it, or the far end of a one-sided stretch."""
+    if first == 0 and (not keys or min(keys) > last):
+        return 0
+    if keys and max(keys) < first:
+        return last
+    cum = np.concatenate([[0.0], np.cumsum(motion[first - 1:last + 1])])  # motion from keyframe first-1
+    return int(np.clip(first - 1 + np.argmin(np.abs(cum - cum[-1] / 2.0)), first, last))

@@ -175,6 +175,7 @@ class Propagator:
         self._plan: list[int] = []
         self._ahead: dict[int, Future] = {}  # planned or requested, not yet stored
         self._decoded: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # worker-only: the last decoded frame
+        self.motion: dict[int, float] = {}  # pair t -> median flow t -> t+1, as a fraction of the work width
 
     # -- flow -------------------------------------------------------------------------------------------
     def pair(self, t: int) -> tuple[np.ndarray, np.ndarray]:
@@ -199,6 +200,7 @@ class Propagator:
 
     def _store(self, t: int, flows, images) -> None:
         self._flows[t] = flows
+        self.motion[t] = median_motion(flows[0])
         for pos, (full, work) in images.items():
             self.cache.put(pos, full, work)
         self.flow_pairs += 1
@@ -513,6 +515,12 @@ class Propagator:
                 fill = np.zeros_like(labels)
             labels[unknown] = fill[unknown]
         return FrameResult(k, labels, keyframe=True, dist=(0, 0))
+
+
+def median_motion(flow: np.ndarray, stride: int = 4) -> float:
+    """Median displacement of a (h, w, 2) flow field as a fraction of its width: how far the view moved."""
+    f = flow[::stride, ::stride]
+    return float(np.median(np.sqrt(f[..., 0] ** 2 + f[..., 1] ** 2))) / flow.shape[1]
 
 
 def chsum(x: np.ndarray) -> np.ndarray:

@@ -17,7 +17,7 @@ import yaml
 from .conventions import frame_index
 from .errors import InputError, StageError
 from .frames import extract_frames
-from .report import StageReport
+from .report import StageReport, warning_lines
 from .sfm import add_sfm_options, estimate_poses, sfm_options, summary_lines
 
 KEYFRAME_SUFFIXES = (".png", ".json")
@@ -131,6 +131,7 @@ def main(args) -> int:
     t0 = time.perf_counter()
     fig = process(args.input, args.dataset, keyframes=args.keyframes, labels=args.labels, target=args.target,
                   every=args.every, long_side=args.long_side, **sfm_options(args))
-    print("\n".join(summary_lines(fig, args.dataset)))
+    print("\n".join(warning_lines(args.dataset, ["frames", "masks"] if args.keyframes else ["frames"])
+                    + summary_lines(fig, args.dataset) + (warning_lines(args.dataset, ["labels"]) if args.labels else [])))
     print(f"process: done in {time.perf_counter() - t0:.1f} s -> {args.dataset}")
     return 0

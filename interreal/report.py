@@ -34,6 +34,16 @@ def read_report(root: str | Path, stage: str) -> dict[str, Any] | None:
         return None
 
 
+def warning_lines(root: str | Path, stages: list[str]) -> list[str]:
+    """'  warning (stage): message' for every warning the stages' reports hold: terminal summaries show what the
+    reports say, so nothing a stage noticed is only in a JSON file."""
+    lines = []
+    for stage in stages:
+        for w in (read_report(root, stage) or {}).get("warnings", []):
+            lines.append(f"  warning ({stage}): {w.get('message', w) if isinstance(w, dict) else w}")
+    return lines
+
+
 def fingerprint(*parts: Any) -> str:
     """Stable hash of settings/inputs, used to decide whether a finished step can be reused."""
     blob = json.dumps(parts, sort_keys=True, default=str).encode()

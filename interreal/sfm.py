@@ -38,7 +38,7 @@ from .conventions import (
 )
 from .dataset import Frame, Intrinsics, list_images, write_transforms
 from .errors import InputError, StageError
-from .report import StageReport, fingerprint
+from .report import StageReport, fingerprint, warning_lines
 
 COLMAP_DIR = "colmap"
 KEY_STRIDE_MIN = 150  # frames from which a sequential capture is mapped on every 3rd frame first (auto key_stride)
@@ -877,8 +877,7 @@ def summary_lines(fig: dict[str, Any], ds: Path) -> list[str]:
     if len(fig.get("ladder", [])) > 1:
         tried = ", ".join(f"{t['rung']} {t['registered']}/{fig.get('total')}" for t in fig["ladder"])
         lines.append(f"  retry ladder: {tried}; kept '{fig.get('chosen_attempt')}'")
-    for g in fig.get("unregistered", []):
-        lines.append(f"  warning: frames {g['frames']} did not register: {g['cause']}")
+    lines += warning_lines(ds, ["poses"])
     outs = [ds / TRANSFORMS_FILE] + ([ds / COLMAP_DIR / "sparse" / "0", ds / PLY_FILE] if "imported" not in fig else [])
     lines.append("  -> " + ", ".join(str(p) for p in outs + [ds / "reports" / "poses.json"]))
     return lines

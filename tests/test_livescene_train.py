@@ -282,7 +282,9 @@ def test_auto_threads_look_at_other_processes_not_the_load_average(monkeypatch):
 
     cores = os.cpu_count() or 1
     now = device.other_processes_cores(0.1)
-    assert now is not None and 0.0 <= now <= cores + 0.5
+    # cores' worth of CPU time per second; over a 0.1 s window on an oversubscribed machine the sampling skew
+    # between reading /proc and the clock can overshoot the core count
+    assert now is not None and 0.0 <= now <= 2 * cores + 0.5
     before = torch.get_num_threads()
     try:
         monkeypatch.setattr(device, "other_processes_cores", lambda window=0.5: 0.0)

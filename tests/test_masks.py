@@ -463,3 +463,14 @@ def test_fast_view_motion_between_keyframes_is_reported(tmp_path):
     warned = [w for w in out["sparse"]["warnings"] if w["cause"] == "masks-unreliable"]
     assert len(warned) == 1 and ("00007" in warned[0]["message"] or "00008" in warned[0]["message"])
     assert not [w for w in out["dense"]["warnings"] if w["cause"] == "masks-unreliable"]
+
+
+def test_cli_prints_the_reports_warnings(tmp_path, capsys):
+    from interreal.cli import main
+
+    images, truths = panning_sequence(16, 4)
+    ds = make_ds(tmp_path, images)
+    keys = write_keys(tmp_path / "keys", truths, [0, 15], ["disk"])
+    assert main(["masks", str(ds), "--keyframes", str(keys), "--quiet", "--preview", "none"]) == 0
+    out = capsys.readouterr().out
+    assert "warning (masks): masks may be unreliable: the view moves too far between keyframes" in out

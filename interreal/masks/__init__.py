@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..report import warning_lines
 from .stage import PREVIEW_KINDS, propagate
 
 __all__ = ["propagate", "add_arguments", "main"]
@@ -49,6 +50,8 @@ def main(args: argparse.Namespace) -> int:
     print(f"masks: {fig['frames']} frames, {len(fig['objects'])} objects, {fig['fps']:.1f} frames/s")
     for name, c in fig["confidence_mean"].items():
         print(f"  {name}: mean confidence {c:.2f}, min {fig['confidence_min'][name]:.2f}")
+    for line in warning_lines(args.dataset, ["masks"]):
+        print(line)
     if args.suggest > 0:
         print("annotate next: " + (", ".join(fig["suggested_frames"]) or "(nothing: every frame is a keyframe)"))
     return 0

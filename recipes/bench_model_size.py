@@ -6,9 +6,10 @@ sits at the knee of PSNR against parameters, for three room sizes.
 
 For each room (`interreal synth --room-scale` 0.7 / 1.0 / 1.6; furniture keeps its size, the room and the camera's
 distance grow): simulate a capture, make its truth dataset at 320x240, train the cpu preset at capacities
-x0.25 .. x2 (`model.capacity` multiplies the auto plane resolutions; x1 = auto) for the same number of steps
+x0.5, x1, x2 (`model.capacity` multiplies the auto plane resolutions; x1 = auto) for the same number of steps
 (`--budget minutes` for equal wall time instead), and evaluate held-out PSNR (every 8th frame, never trained on).
-The knee of a curve is its smallest model within KNEE_DB of its best PSNR.
+The knee of a curve is its smallest model within KNEE_DB of its best PSNR. A run that diverges is recorded
+(no PSNR, `error`) and left out of the knee.
 
 Records (DIR/model_size.json "runs"): data, variant, room_scale, capacity, auto, params, resolution, psnr, ssim,
 steps, minutes, extent, distance. Chart: DIR/model_size.png (PSNR against parameters, log x, one line per room,
@@ -29,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchlib import bench_args, print_table, scatter_chart, write_results  # noqa: E402
 
 SCENES = {"small": 0.7, "medium": 1.0, "large": 1.6}  # room_scale of each simulated room
-CAPACITIES = [0.25, 0.5, 1.0, 2.0]
+CAPACITIES = [0.5, 1.0, 2.0]  # around the auto size; 1000-step budgets favour small models, so few but long runs
 QUICK_CAPACITIES = [0.25, 1.0, 2.0]
 KNEE_DB = 0.5
 EVAL_SCALE = 0.5  # held-out frames rendered at 160x120 (the 320x240 truth downscaled): rendering dominates on CPU
@@ -42,10 +43,10 @@ def extra_args(p) -> None:
                    help=f"comma list of capacities (default {CAPACITIES}; --quick {QUICK_CAPACITIES})")
     p.add_argument("--budget", choices=("steps", "minutes"), default="steps",
                    help="equal training steps (default: fair on a shared machine) or equal wall time per run")
-    p.add_argument("--steps", type=int, default=None, help="steps per run (default 2000, --quick 150)")
+    p.add_argument("--steps", type=int, default=None, help="steps per run (default 2500, --quick 150)")
     p.add_argument("--minutes", type=float, default=None, help="minutes per run with --budget minutes (default 4, --quick 0.5)")
-    p.add_argument("--frames", type=int, default=None, help="frames per capture (default 300 at 640x480, --quick 48 at 320x240)")
-    p.add_argument("--eval-frames", type=int, default=None, help="held-out frames evaluated, evenly spread (default 0 = all)")
+    p.add_argument("--frames", type=int, default=None, help="frames per capture (default 150 at 640x480, --quick 48 at 320x240)")
+    p.add_argument("--eval-frames", type=int, default=None, help="held-out frames evaluated, evenly spread (default 8; 0 = all)")
     p.add_argument("--threads", type=int, default=0, help="CPU threads (0 = auto: 1 on a busy machine)")
     p.add_argument("--device", default="auto")
     p.add_argument("--fresh", action="store_true", help="redo runs already in DIR/model_size.json")
@@ -147,14 +148,15 @@ def main() -> int:
     args = bench_args("model_size", __doc__.splitlines()[0], extra_args)
     _reexec_with_jemalloc()
     from livescene.device import configure_threads, select_device
+    from livescene.errors import DivergenceError
 
     threads = configure_threads(args.threads)
     args.device = str(select_device(args.device).type)
     quick = args.quick
-    args.steps = args.steps or (150 if quick else 2000)
+    args.steps = args.steps or (150 if quick else 2500)
     args.minutes = args.minutes or (0.5 if quick else 4.0)
-    args.eval_frames = args.eval_frames or 0
-    args.frames = args.frames or (48 if quick else 300)
+    args.eval_frames = 8 if args.eval_frames is None else args.eval_frames
+    args.frames = args.frames or (48 if quick else 150)
     caps = [float(c) for c in args.capacities.split(",")] if args.capacities else (QUICK_CAPACITIES if quick else CAPACITIES)
     scenes = [s for s in args.scenes.split(",") if s]
     unknown = sorted(set(scenes) - set(SCENES))
@@ -179,7 +181,11 @@ def main() -> int:
                 continue
             print(f"[{time.perf_counter() - t_all:6.0f} s] {name} room (x{SCENES[name]:g}), capacity x{c:g} ...",
                   flush=True)
-            rec = train_and_eval(ds, cap, args.out / "runs" / f"{name}_x{c:g}", c, box, args)
+            try:
+                rec = train_and_eval(ds, cap, args.out / "runs" / f"{name}_x{c:g}", c, box, args)
+            except DivergenceError as exc:  # a finding, not a crash: recorded (no PSNR), the sweep goes on
+                print(f"    diverged: {exc}", flush=True)
+                rec = {"psnr": None, "error": f"diverged: {exc}"[:300]}
             runs.append({"data": name, "variant": f"capacity x{c:g}", "room_scale": SCENES[name], "capacity": c,
                          "auto": c == 1.0, **figs, **rec, **budget, "box": box})
             runs.sort(key=lambda r: (list(SCENES).index(r["data"]), r["capacity"]))

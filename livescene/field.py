@@ -21,13 +21,18 @@ from .errors import LiveSceneError
 BACKGROUND_K = 0.0  # interaction value of samples that belong to no object
 
 
+DENSITY_LOGIT_MAX = 40.0  # exp(40) ~ 2e17: opaque at any step size, and far from float32's overflow at 88.7
+
+
 class _TruncExp(torch.autograd.Function):
-    """exp with its gradient clamped, so a large density logit cannot blow up a step (as in Instant-NGP)."""
+    """exp with its gradient clamped, so a large density logit cannot blow up a step (as in Instant-NGP), and its
+    value capped: one logit spiking past 88.7 (seen at 4.7 M parameters) made an inf density, inf x 0 step = NaN,
+    and the same batch diverged again after every rollback."""
 
     @staticmethod
     def forward(ctx, x):
         ctx.save_for_backward(x)
-        return torch.exp(x)
+        return torch.exp(x.clamp(max=DENSITY_LOGIT_MAX))
 
     @staticmethod
     def backward(ctx, g):

@@ -170,3 +170,20 @@ def test_toy_scene_masks_follow_the_door(tmp_path):
     assert np.all(np.isfinite(depth0)) and depth0.min() > 0
     ds = toy_dataset(tmp_path / "ds", n_frames=8)
     assert D.validate(ds).ok, D.format_problems(D.validate(ds))
+
+
+def test_a_spiking_density_logit_stays_finite():
+    """A logit past float32's exp overflow (88.7) once made an inf density and a NaN loss that no rollback cured."""
+    import pytest
+    import torch
+
+    from livescene.field import trunc_exp
+    from livescene.sampler import volume_weights
+
+    x = torch.tensor([[1.0, 89.5, 120.0, 3.0]], requires_grad=True)
+    sigma = trunc_exp(x)
+    edges = torch.tensor([[0.0, 0.1, 0.1, 0.2, 0.3]])  # a zero-length step, as resampling makes
+    w = volume_weights(sigma, edges)
+    w.sum().backward()
+    assert torch.isfinite(sigma).all() and torch.isfinite(w).all() and torch.isfinite(x.grad).all()
+    assert float(w.detach().sum()) == pytest.approx(1.0, abs=1e-6)  # opaque at the spike

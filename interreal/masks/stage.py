@@ -37,6 +37,7 @@ UNRELIABLE_FRACTION = 0.7
 # 0.135 -> 0.84 (3x camera speed); 0.25-0.27 -> 0.74-0.80; DAVIS first frame only: 0.49 -> 0.91, 0.54 -> 0.81.
 MAX_REACH = 0.10
 
+
 def make_config(work_long_side: int = -1, flow: str = "dis", preset: str = "fast", appearance: float = 0.25,
                 rigid: float = 1.0, fusion: bool = True, refine: bool = True) -> TrackConfig:
     """A TrackConfig from the user-facing options."""

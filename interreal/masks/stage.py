@@ -165,13 +165,14 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
             "sfm_dilate_px": dil,
         })
         motion = np.array([prop.motion.get(t, 0.0) for t in range(len(fids) - 1)])
-        reach = keyframe_reach(motion, sorted(anchors)) if len(fids) > 1 else []
+        keys = sorted(anchors)
+        reach = keyframe_reach(motion, keys) if len(fids) > 1 else []
         rep.figures["keyframe_reach"] = [{"first": fids[a], "last": fids[b], "reach": round(r, 4)} for a, b, r in reach]
         rep.figures["max_keyframe_reach"] = round(max((r for _, _, r in reach), default=0.0), 4)
         far = sorted((x for x in reach if x[2] > MAX_REACH), key=lambda x: -x[2])
         if far:
             where = ", ".join(f"{fids[a]}-{fids[b]} up to {100 * r:.0f} %" for a, b, r in far[:4])
-            add = sorted({fids[reach_suggestion(motion, a, b, sorted(anchors))] for a, b, _ in far})
+            add = sorted({fids[reach_suggestion(motion, a, b, keys)] for a, b, _ in far})
             rep.warn(f"masks may be unreliable: the view moves too far between keyframes for propagation to hold "
                      f"(distance to the nearest keyframe in image widths: frames {where}; propagation holds to about "
                      f"{100 * MAX_REACH:.0f} %); fast camera motion or sparse keyframes: add keyframes at "

@@ -190,17 +190,17 @@ class Propagator:
             fut = self._ahead.get(t)
             if fut is None:
                 fut = self._ahead[t] = self._pool.submit(self._compute_pair, t)
-        flows, images = fut.result()
+        flows, images, motion = fut.result()
         with self._lock:
             if t not in self._flows:
-                self._store(t, flows, images)
+                self._store(t, flows, images, motion)
                 self._ahead.pop(t, None)
                 self._pump()
             return self._flows[t]
 
-    def _store(self, t: int, flows, images) -> None:
+    def _store(self, t: int, flows, images, motion: float) -> None:
         self._flows[t] = flows
-        self.motion[t] = median_motion(flows[0])
+        self.motion[t] = motion
         for pos, (full, work) in images.items():
             self.cache.put(pos, full, work)
         self.flow_pairs += 1
@@ -243,7 +243,8 @@ class Propagator:
                 self._decoded[pos] = (full, work)
             images[pos] = self._decoded[pos]
         a, b = images[t][1], images[t + 1][1]
-        return (self.flow(a, b), self.flow(b, a)), images
+        fwd = self.flow(a, b)
+        return (fwd, self.flow(b, a)), images, median_motion(fwd)  # motion: off the chains' path
 
     def close(self) -> None:
         if self._pool is not None:

@@ -97,6 +97,8 @@ class TrainConfig:
     holdout_offset: int = 4
     max_side: int = 0  # downscale images so the longer side is at most this (0 = as stored)
     eval_max_side: int = 160  # size of the periodic held-out eval render
+    final_eval_frames: int = 4  # held-out frames averaged for the end-of-run PSNR (the low-fit warning reads it)
+    final_eval_max_side: int = 640  # their render size: near full, as `livescene eval` renders
     seed: int = 0
     scene_box: list[float] = field(default_factory=list)  # x0 y0 z0 x1 y1 z1 world box (empty = from the dataset)
     max_divergence_retries: int = 3

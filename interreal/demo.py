@@ -242,9 +242,9 @@ def add_arguments(p) -> None:
 def main(args) -> int:
     if args.video is None and (args.keyframes or args.labels):
         raise InputError("--keyframes / --labels go with --video (the simulated capture brings its own)")
-    from livescene.trainer import maybe_reexec_with_jemalloc
+    from livescene.device import reexec_with_jemalloc
 
-    maybe_reexec_with_jemalloc()
+    reexec_with_jemalloc(("interreal", "demo"))
     cfg = DemoConfig(out=args.out, video=args.video, keyframes=args.keyframes, labels=args.labels,
                      frames=args.frames, size=_size(args.size), seed=args.seed, parts=args.parts,
                      train_long_side=args.train_long_side, preset=args.preset, minutes=args.minutes,

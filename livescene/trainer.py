@@ -11,7 +11,6 @@ from __future__ import annotations
 import io
 import json
 import math
-import os
 import random
 import sys
 import time
@@ -28,15 +27,13 @@ from interreal.report import StageReport
 from . import losses as L
 from .config import TrainConfig, apply_overrides, from_dict, load_preset, preset_names, resolve_sizes
 from .data import RayData, Views, load_views
-from .device import configure_threads, describe, select_device
+from .device import JEMALLOC_ENV, configure_threads, describe, reexec_with_jemalloc, select_device
 from .errors import DivergenceError, LiveSceneError
 from .field import LiveSceneModel
 from .sampler import render_rays
 
 REGULARISERS = ("k_smooth", "k_smooth_proposal", "l1_k", "l1_k_proposal", "plane_tv", "plane_tv_proposal",
                 "plane_tv_prob")
-JEMALLOC = "/usr/lib/x86_64-linux-gnu/libjemalloc.so.2"
-NO_JEMALLOC_ENV = "LIVESCENE_NO_JEMALLOC"
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -130,6 +127,7 @@ def lr_factor(step: int, cfg: TrainConfig, time_frac: float = 0.0) -> float:
 class Trainer:
     def __init__(self, dataset: str | Path, run_dir: str | Path, cfg: TrainConfig, device: str = "auto",
                  resume: bool = False, max_minutes: float = 0.0, show_progress: bool = True):
+        self._t_init = time.perf_counter()
         self.run_dir = Path(run_dir)
         self.device = select_device(device)
         self.max_minutes = max_minutes
@@ -167,9 +165,15 @@ class Trainer:
         self.lr_scale = 1.0
         self.retries = 0
         self.elapsed = 0.0  # training seconds (without evaluation), carried across resumes
+        # seconds spent outside training steps (loading, evaluations, checkpoints): `max_minutes` bounds the whole
+        # command, so they come out of the training time; carried across resumes, untouched by rollbacks
+        self.overhead = 0.0
+        self._eval_s_per_px = 0.0  # measured on the periodic evals, to reserve time for the final one
+        self._ckpt_s = 0.0
         self.eval_cursor = 0
         if resume_ckpt is not None:
             self._restore(resume_ckpt)
+            self.overhead = float(resume_ckpt["meta"].get("overhead_s", 0.0))
 
     # -- checkpoints ---------------------------------------------------------------------------------------------
     def _state(self) -> dict[str, Any]:
@@ -183,7 +187,7 @@ class Trainer:
             "meta": {"dataset": str(self.dataset_path), "names": self.views.names,
                      "box_lo": self.views.box_lo.tolist(), "box_hi": self.views.box_hi.tolist(),
                      "box_source": self.views.box_source, "lr_scale": self.lr_scale, "retries": self.retries,
-                     "elapsed_s": self.elapsed, "eval_cursor": self.eval_cursor,
+                     "elapsed_s": self.elapsed, "overhead_s": self.overhead, "eval_cursor": self.eval_cursor,
                      "params": self.model.param_count()},
         }
 
@@ -204,6 +208,7 @@ class Trainer:
         self.eval_cursor = int(meta.get("eval_cursor", 0))
 
     def save_checkpoint(self) -> Path:
+        t0 = time.perf_counter()
         buf = io.BytesIO()
         torch.save(self._state(), buf)
         data = buf.getvalue()
@@ -213,6 +218,7 @@ class Trainer:
         old = sorted(self.ckpt_dir.glob("step_*.pt"))[: -max(self.cfg.keep_checkpoints, 1)]
         for p in old:
             p.unlink(missing_ok=True)
+        self._ckpt_s = time.perf_counter() - t0
         return path
 
     def _rollback(self, reason: str) -> None:
@@ -281,7 +287,7 @@ class Trainer:
         terms, _ = self.losses(batch)
         weights = vars(cfg.loss)
         total = sum(weights[k] * (cfg.reg_every if k in REGULARISERS else 1) * v for k, v in terms.items())
-        time_frac = self.elapsed / (self.max_minutes * 60) if self.max_minutes else 0.0
+        time_frac = self.elapsed / self.train_budget() if self.max_minutes else 0.0
         lr = cfg.lr * self.lr_scale * lr_factor(self.step, cfg, time_frac)
         for g in self.opt.param_groups:
             g["lr"] = lr
@@ -295,6 +301,20 @@ class Trainer:
         out["loss"] = float(total.detach())
         out["lr"] = lr
         return out
+
+    # -- time budget -----------------------------------------------------------------------------------------------
+    def end_reserve(self) -> float:
+        """Seconds the run still needs after its last step: the final evaluation (at the measured render speed)
+        and the final checkpoint."""
+        held = self.views.held_out or self.views.train
+        n = min(self.cfg.final_eval_frames, len(held)) if self.cfg.final_eval_frames > 0 else len(held)
+        intr = self.views.intrinsics[held[0]]
+        s = min(1.0, self.cfg.final_eval_max_side / max(intr.w, intr.h))
+        return n * (intr.w * s) * (intr.h * s) * self._eval_s_per_px + self._ckpt_s
+
+    def train_budget(self) -> float:
+        """Training seconds `max_minutes` leaves once loading, evaluations, checkpoints and the end are paid for."""
+        return max(self.max_minutes * 60 - self.overhead - self.end_reserve(), 1e-3)
 
     # -- evaluation ------------------------------------------------------------------------------------------------
     def heldout_psnr(self, i: int, max_side: int) -> float:
@@ -319,7 +339,12 @@ class Trainer:
         held = self.views.held_out or self.views.train
         i = held[self.eval_cursor % len(held)]
         self.eval_cursor += 1
-        return {"psnr": self.heldout_psnr(i, self.cfg.eval_max_side), "frame": int(i)}
+        t0 = time.perf_counter()
+        value = self.heldout_psnr(i, self.cfg.eval_max_side)
+        intr = self.views.intrinsics[i]
+        s = min(1.0, self.cfg.eval_max_side / max(intr.w, intr.h))
+        self._eval_s_per_px = (time.perf_counter() - t0) / max(intr.w * s * intr.h * s, 1.0)
+        return {"psnr": value, "frame": int(i)}
 
     def final_eval(self) -> dict[str, Any]:
         """Mean PSNR over `final_eval_frames` held-out frames spread through the video, near full size.
@@ -353,6 +378,9 @@ class Trainer:
               f"{self.views.box_source})", flush=True)
         if self.step == 0:
             self.save_checkpoint()
+        if self._t_init is not None:  # loading and setting up, once per process
+            self.overhead += time.perf_counter() - self._t_init
+            self._t_init = None
         t_start = time.perf_counter() - self.elapsed
         last = {}
         acc: dict[str, list[float]] = {}
@@ -383,11 +411,13 @@ class Trainer:
                 self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2), **ev})
                 bar.write(f"step {self.step}: held-out PSNR {ev['psnr']:.2f} dB (frame position {ev['frame']})")
                 eval_time += time.perf_counter() - t0
+                self.overhead += time.perf_counter() - t0
             if cfg.ckpt_every and self.step % cfg.ckpt_every == 0:
                 t0 = time.perf_counter()
                 self.save_checkpoint()
                 eval_time += time.perf_counter() - t0
-            if self.max_minutes and self.elapsed >= self.max_minutes * 60:
+                self.overhead += time.perf_counter() - t0
+            if self.max_minutes and self.elapsed >= self.train_budget():
                 stop_reason = "max-minutes"
                 break
         bar.close()
@@ -402,35 +432,14 @@ class Trainer:
 # ----------------------------------------------------------------------------------------------------------------
 # CLI
 # ----------------------------------------------------------------------------------------------------------------
-def _jemalloc_loaded() -> bool:
-    try:
-        return "jemalloc" in Path("/proc/self/maps").read_text()
-    except OSError:
-        return "jemalloc" in os.environ.get("LD_PRELOAD", "")
-
-
-def maybe_reexec_with_jemalloc() -> None:
-    """Re-run this command under jemalloc (measured 1.6-2x faster at large batches); opt out with
-    LIVESCENE_NO_JEMALLOC=1. Only when started from the command line (not when called as a function)."""
-    if os.environ.get(NO_JEMALLOC_ENV) or not os.path.exists(JEMALLOC) or _jemalloc_loaded():
-        return
-    argv0 = Path(sys.argv[0]).name if sys.argv else ""
-    if argv0 not in ("livescene", "__main__.py") or "train" not in sys.argv[1:2]:
-        return
-    env = dict(os.environ)
-    env["LD_PRELOAD"] = (JEMALLOC + " " + env.get("LD_PRELOAD", "")).strip()
-    env[NO_JEMALLOC_ENV] = "1"  # never loop
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os.execve(sys.executable, [sys.executable, "-m", "livescene", *sys.argv[1:]], env)
-
-
 def add_arguments(p) -> None:
     p.add_argument("dataset", type=Path, help="LiveScene dataset folder (ours, InterReal or OmniSim layout)")
     p.add_argument("--out", type=Path, required=True, help="run folder (checkpoints, metrics, config)")
     p.add_argument("--preset", default="auto", help=f"auto (gpu on CUDA, else cpu), one of {preset_names()} or a YAML file")
     p.add_argument("--steps", type=int, default=0, help="training steps (default: the preset's)")
-    p.add_argument("--max-minutes", type=float, default=0.0, help="stop (and checkpoint) after this much training time")
+    p.add_argument("--max-minutes", type=float, default=0.0,
+                   help="time limit for the whole command: training stops early enough that loading, evaluations, "
+                        "checkpoints and the final evaluation fit in it")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda")
     p.add_argument("--resume", action="store_true", help="continue the run in --out exactly where it stopped")
     p.add_argument("--seed", type=int, default=None)
@@ -444,7 +453,7 @@ def add_arguments(p) -> None:
                 "  livescene train out/ds --out out/run --preset cpu --max-minutes 15\n"
                 "  livescene train out/ds --out out/run --resume              # after a kill, continues exactly\n"
                 "  livescene train out/ds --out out/run --set model.reject_threshold=0 --steps 2000\n"
-                f"jemalloc: re-runs itself with LD_PRELOAD={JEMALLOC} when present; {NO_JEMALLOC_ENV}=1 to opt out")
+                f"{JEMALLOC_ENV}=1 re-runs it under jemalloc (slower on the machine it was measured on; see livescene.device)")
 
 
 def train(dataset: str | Path, out: str | Path, cfg: TrainConfig, device: str = "auto", resume: bool = False,
@@ -517,7 +526,7 @@ def label_warnings(views) -> list[tuple[str, str]]:
 
 
 def main(args) -> int:
-    maybe_reexec_with_jemalloc()
+    reexec_with_jemalloc(("livescene", "train"))
     configure_threads(args.threads)
     device = select_device(args.device)
     preset = args.preset if args.preset != "auto" else ("gpu" if device.type == "cuda" else "cpu")

@@ -19,7 +19,6 @@ the auto size marked). Re-running with the same settings reuses finished runs (`
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import sys
 import time
@@ -53,17 +52,6 @@ def extra_args(p) -> None:
     p.epilog = ("examples:\n  python recipes/bench_model_size.py --quick --out bench/\n"
                 "  python recipes/bench_model_size.py --out bench/ --steps 3000\n"
                 "  python recipes/bench_model_size.py --out bench/ --budget minutes --minutes 5 --scenes small,large")
-
-
-def _reexec_with_jemalloc() -> None:
-    """Re-run under jemalloc like `livescene train` (measured 1.6-2x faster training); LIVESCENE_NO_JEMALLOC=1 opts out."""
-    from livescene.trainer import JEMALLOC, NO_JEMALLOC_ENV, _jemalloc_loaded
-
-    if os.environ.get(NO_JEMALLOC_ENV) or not os.path.exists(JEMALLOC) or _jemalloc_loaded():
-        return
-    env = {**os.environ, "LD_PRELOAD": (JEMALLOC + " " + os.environ.get("LD_PRELOAD", "")).strip(), NO_JEMALLOC_ENV: "1"}
-    sys.stdout.flush()
-    os.execve(sys.executable, [sys.executable, *sys.argv], env)
 
 
 def make_room(out: Path, name: str, room_scale: float, quick: bool, frames: int) -> tuple[Path, Path]:
@@ -146,8 +134,9 @@ def knees(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def main() -> int:
     args = bench_args("model_size", __doc__.splitlines()[0], extra_args)
-    _reexec_with_jemalloc()
-    from livescene.device import configure_threads, select_device
+    from livescene.device import configure_threads, reexec_with_jemalloc, select_device
+
+    reexec_with_jemalloc()
     from livescene.errors import DivergenceError
 
     threads = configure_threads(args.threads)

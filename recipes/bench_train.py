@@ -199,23 +199,11 @@ def charts(path: Path, runs: list[dict]) -> Path:
     return path
 
 
-def _with_jemalloc() -> None:
-    """Re-run under jemalloc like `livescene train` does (LIVESCENE_NO_JEMALLOC=1 opts out)."""
-    import os
-
-    from livescene.trainer import JEMALLOC, NO_JEMALLOC_ENV, _jemalloc_loaded
-
-    if os.environ.get(NO_JEMALLOC_ENV) or not os.path.exists(JEMALLOC) or _jemalloc_loaded():
-        return
-    env = {**os.environ, "LD_PRELOAD": (JEMALLOC + " " + os.environ.get("LD_PRELOAD", "")).strip(),
-           NO_JEMALLOC_ENV: "1"}
-    os.execve(sys.executable, [sys.executable, *sys.argv], env)
-
-
 def main() -> int:
     args = bench_args("train", __doc__.splitlines()[0], extra_args)
-    _with_jemalloc()
-    from livescene.device import configure_threads, select_device
+    from livescene.device import configure_threads, reexec_with_jemalloc, select_device
+
+    reexec_with_jemalloc()
 
     threads = configure_threads(args.threads)
 

@@ -505,15 +505,23 @@ def _validate_frames(root: Path, meta: dict, add) -> list[tuple[str, dict]]:
     return out
 
 
-def _validate_mapping(root: Path, add) -> dict[int, str]:
-    path = root / MAPPING_FILE
+def _read_checked_yaml(path: Path, add, missing_code: str, missing_hint: str) -> tuple[bool, Any]:
+    """(readable, content) of a dataset YAML file; a missing or unparsable file is reported through `add`."""
     if not path.exists():
-        add("no-mapping", path, "missing: name the objects with `interreal label DS --add-object NAME` or `interreal masks`")
-        return {}
+        add(missing_code, path, f"missing: {missing_hint}")
+        return False, None
     try:
-        raw = read_yaml(path)
+        return True, read_yaml(path)
     except (OSError, yaml.YAMLError, UnicodeDecodeError) as exc:
         add("bad-yaml", path, f"not valid YAML: {exc}")
+        return False, None
+
+
+def _validate_mapping(root: Path, add) -> dict[int, str]:
+    path = root / MAPPING_FILE
+    ok, raw = _read_checked_yaml(path, add, "no-mapping",
+                                 "name the objects with `interreal label DS --add-object NAME` or `interreal masks`")
+    if not ok:
         return {}
     if not isinstance(raw, dict) or not raw:
         add("bad-mapping", path, "expected a non-empty mapping {0: 'name', 1: 'name', ...}")
@@ -538,13 +546,8 @@ def _validate_mapping(root: Path, add) -> dict[int, str]:
 
 def _validate_labels(root: Path, mapping: dict[int, str], frames: list[tuple[str, dict]], add) -> dict:
     path = root / LABELS_FILE
-    if not path.exists():
-        add("no-labels", path, "missing: set keyframe states with `interreal label DS --set NAME FRAME VALUE`")
-        return {}
-    try:
-        raw = read_yaml(path)
-    except (OSError, yaml.YAMLError, UnicodeDecodeError) as exc:
-        add("bad-yaml", path, f"not valid YAML: {exc}")
+    ok, raw = _read_checked_yaml(path, add, "no-labels", "set keyframe states with `interreal label DS --set NAME FRAME VALUE`")
+    if not ok:
         return {}
     if raw is None:
         raw = {}

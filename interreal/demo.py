@@ -63,7 +63,7 @@ def process_capture(cfg: DemoConfig, video: Path, keyframes: Path | None, labels
                     capture: Path | None) -> Path:
     from .dataset import load_dataset, validate
     from .process import process
-    from .report import read_report
+    from .report import read_report, warning_lines
 
     ds = cfg.out / "dataset"
     done = read_report(ds, "process")
@@ -79,7 +79,7 @@ def process_capture(cfg: DemoConfig, video: Path, keyframes: Path | None, labels
     steps = rep.get("steps", {})
     _row(cfg, "frames", steps.get("frames", {}).get("wall_s", 0.0), f"{steps.get('frames', {}).get('frames', '?')} frames selected")
     if keyframes is not None:
-        q = _mask_quality(ds, capture) if capture is not None else "no truth"
+        q = _mask_quality(ds, capture) if capture is not None else _mask_summary(ds)
         _row(cfg, "masks", steps.get("masks", {}).get("wall_s", 0.0), q)
     pq = f"{fig.get('registered')}/{fig.get('total')} registered, reproj {fig.get('mean_reproj_error_px', float('nan')):.2f} px"
     if capture is not None:
@@ -90,7 +90,20 @@ def process_capture(cfg: DemoConfig, video: Path, keyframes: Path | None, labels
         _, given = d.label_matrix()
         _row(cfg, "labels", steps.get("labels", {}).get("wall_s", 0.0), f"{int(given.sum())} labelled (frame, object) pairs "
              f"on {int(given.any(1).sum())}/{len(d.frames)} frames")
+    for line in warning_lines(ds, ["frames", "masks", "poses", "labels"]):  # what the stages noticed, not only in JSON
+        print(line, flush=True)
     return ds
+
+
+def _mask_summary(ds: Path) -> str:
+    """Without truth: what the masks stage itself measured (its confidence; its warnings are printed too)."""
+    from .report import read_report
+
+    fig = (read_report(ds, "masks") or {}).get("figures", {})
+    conf = ", ".join(f"{n} {v:.2f}" for n, v in fig.get("confidence_mean", {}).items())
+    n_warn = len((read_report(ds, "masks") or {}).get("warnings", []))
+    return (f"{len(fig.get('keyframes', []))} keyframes -> {fig.get('frames', '?')} frames, mean confidence {conf}"
+            + (f", {n_warn} warning{'s' if n_warn > 1 else ''}" if n_warn else ""))
 
 
 def _pose_quality(ds: Path, capture: Path) -> str:
@@ -138,12 +151,11 @@ def evaluate_run(cfg: DemoConfig, run_dir: Path, capture: Path | None) -> dict[s
     res = evaluate(run, truth, max_frames=cfg.eval_frames, scale=cfg.eval_scale, novel=cfg.novel)
     atomic.write_json(cfg.out / "eval.json", res)
 
-    def f(key: str, fmt: str = "{:.3f}") -> str:
-        v = res.get(key)
-        return "n/a" if v is None else fmt.format(v)
-
-    q = (f"PSNR {f('psnr', '{:.2f}')} dB, SSIM {f('ssim')}, mask IoU {f('mask_iou')}, "
-         f"state MAE {f('state_mae')}, novel-state PSNR {f('novel_state_psnr', '{:.2f}')} dB")
+    figures = [("PSNR", "psnr", "{:.2f} dB"), ("SSIM", "ssim", "{:.3f}"), ("mask IoU", "mask_iou", "{:.3f}"),
+               ("state MAE", "state_mae", "{:.3f}"), ("novel-state PSNR", "novel_state_psnr", "{:.2f} dB")]
+    q = ", ".join(f"{label} {fmt.format(res[key])}" for label, key, fmt in figures if res.get(key) is not None)
+    if truth is None:
+        q += " (against the held-out video frames and the propagated masks; no truth)"
     _row(cfg, "eval", time.perf_counter() - t0, q)
     return res
 

@@ -339,12 +339,16 @@ class Trainer:
         held = self.views.held_out or self.views.train
         i = held[self.eval_cursor % len(held)]
         self.eval_cursor += 1
+        return {"psnr": self._timed_psnr(i), "frame": int(i)}
+
+    def _timed_psnr(self, i: int) -> float:
+        """heldout_psnr at `eval_max_side`, recording the render speed that `end_reserve` plans with."""
         t0 = time.perf_counter()
         value = self.heldout_psnr(i, self.cfg.eval_max_side)
         intr = self.views.intrinsics[i]
         s = min(1.0, self.cfg.eval_max_side / max(intr.w, intr.h))
         self._eval_s_per_px = (time.perf_counter() - t0) / max(intr.w * s * intr.h * s, 1.0)
-        return {"psnr": value, "frame": int(i)}
+        return value
 
     def final_eval(self) -> dict[str, Any]:
         """Mean PSNR over `final_eval_frames` held-out frames spread through the video, near full size.
@@ -378,7 +382,11 @@ class Trainer:
               f"{self.views.box_source})", flush=True)
         if self.step == 0:
             self.save_checkpoint()
-        if self._t_init is not None:  # loading and setting up, once per process
+        if self.max_minutes and not self._eval_s_per_px:  # a time limit needs the final evaluation's cost up front
+            held = self.views.held_out or self.views.train
+            self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2),
+                       "psnr": self._timed_psnr(held[0]), "frame": int(held[0])})
+        if self._t_init is not None:  # loading, setting up and that first render, once per process
             self.overhead += time.perf_counter() - self._t_init
             self._t_init = None
         t_start = time.perf_counter() - self.elapsed

@@ -47,3 +47,29 @@ def test_demo_missing_video_is_a_clear_error(tmp_path: Path):
     r = subprocess.run([sys.executable, "-m", "interreal", "demo", str(tmp_path / "x"), "--video",
                         str(tmp_path / "nope.mp4")], capture_output=True, text=True)
     assert r.returncode == 2 and "does not exist" in r.stderr
+
+
+@pytest.mark.slow
+def test_demo_on_your_own_video_reports_without_truth(tmp_path: Path, capsys):
+    """`interreal demo --video --keyframes --labels`: the same path with no simulator behind it. The table shows what
+    the stages measured themselves (no 'n/a' truth figures) and the stages' warnings reach the terminal."""
+    from interreal.synth import SynthConfig, write_capture
+
+    cap = tmp_path / "cap"
+    write_capture(SynthConfig(frames=30, width=320, height=240, seed=1), cap)
+    cfg = DemoConfig(out=tmp_path / "demo", video=cap / "video.mp4", keyframes=cap / "annotations" / "keyframes",
+                     labels=cap / "annotations" / "states.yaml", train_long_side=320, preset="tiny", steps=40,
+                     minutes=1.0, sweep_frames=2, eval_frames=2, eval_scale=0.5, novel=1, device="cpu")
+    rows = run_demo(cfg)
+    by = {r["stage"]: r["quality"] for r in rows}
+    assert "simulate" not in by and "registered" in by["poses"]
+    assert "keyframes ->" in by["masks"] and "mean confidence" in by["masks"]
+    assert "PSNR" in by["eval"] and "no truth" in by["eval"]
+    assert "n/a" not in " ".join(by.values()) and "state MAE" not in by["eval"]
+    ev = json.loads((cfg.out / "eval.json").read_text())
+    assert ev["psnr"] > 5.0 and ev.get("state_mae") is None
+    out = capsys.readouterr().out
+    for stage in ("frames", "masks", "poses", "labels"):
+        report = json.loads((cfg.out / "dataset" / "reports" / f"{stage}.json").read_text())
+        for w in report["warnings"]:
+            assert f"warning ({stage}): {w['message']}" in out

@@ -303,14 +303,26 @@ class Trainer:
         return out
 
     # -- time budget -----------------------------------------------------------------------------------------------
-    def end_reserve(self) -> float:
-        """Seconds the run still needs after its last step: the final evaluation (at the measured render speed)
-        and the final checkpoint."""
+    def _final_eval_cost(self, side: int) -> float:
+        """Seconds the final evaluation takes at long side `side`, at the measured render speed."""
         held = self.views.held_out or self.views.train
         n = min(self.cfg.final_eval_frames, len(held)) if self.cfg.final_eval_frames > 0 else len(held)
         intr = self.views.intrinsics[held[0]]
-        s = min(1.0, self.cfg.final_eval_max_side / max(intr.w, intr.h))
-        return n * (intr.w * s) * (intr.h * s) * self._eval_s_per_px + self._ckpt_s
+        s = min(1.0, side / max(intr.w, intr.h))
+        return n * (intr.w * s) * (intr.h * s) * self._eval_s_per_px
+
+    def final_side(self) -> int:
+        """`final_eval_max_side`, lowered (not below `eval_max_side`) where it would spend more than a tenth of a
+        time limit: a 1.5-minute run on 1600x900 frames spent half its budget evaluating at 640 px."""
+        side = self.cfg.final_eval_max_side
+        cost, allowed = self._final_eval_cost(side), 0.1 * self.max_minutes * 60
+        if self.max_minutes and cost > allowed:
+            side = max(self.cfg.eval_max_side, int(side * math.sqrt(allowed / cost)))
+        return side
+
+    def end_reserve(self) -> float:
+        """Seconds the run still needs after its last step: the final evaluation and the final checkpoint."""
+        return self._final_eval_cost(self.final_side()) + self._ckpt_s
 
     def train_budget(self) -> float:
         """Training seconds `max_minutes` leaves once loading, evaluations, checkpoints and the end are paid for."""
@@ -359,8 +371,9 @@ class Trainer:
 
         held = self.views.held_out or self.views.train
         frames = pick_frames(list(held), self.cfg.final_eval_frames)
-        scores = [self.heldout_psnr(i, self.cfg.final_eval_max_side) for i in frames]
-        return {"psnr": float(np.mean(scores)), "frames": [int(i) for i in frames],
+        side = self.final_side()
+        scores = [self.heldout_psnr(i, side) for i in frames]
+        return {"psnr": float(np.mean(scores)), "frames": [int(i) for i in frames], "max_side": side,
                 "frame_psnr": [round(float(v), 3) for v in scores]}
 
     # -- loop ----------------------------------------------------------------------------------------------------
@@ -434,7 +447,8 @@ class Trainer:
         self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2), "final": True, **final})
         return {"steps": self.step, "elapsed_s": round(self.elapsed, 2), "params": params, "stop": stop_reason,
                 "train_psnr": last.get("psnr"), "heldout_psnr": final["psnr"],
-                "heldout_eval_frames": len(final["frames"]), "rollbacks": self.retries}
+                "heldout_eval_frames": len(final["frames"]), "heldout_eval_side": final["max_side"],
+                "rollbacks": self.retries}
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -395,3 +395,20 @@ def test_jemalloc_is_opt_in_and_only_for_its_own_command(monkeypatch):
     assert calls == []
     device.reexec_with_jemalloc(("livescene", "train"))
     assert len(calls) == 1 and device.JEMALLOC in calls[0][2]["LD_PRELOAD"]
+
+
+def test_final_evaluation_shrinks_to_a_tenth_of_a_short_time_limit(tmp_path):
+    """A 1.5-minute run on 1600x900 frames spent half its budget on the final evaluation at 640 px."""
+    ds = toy_dataset(tmp_path / "ds", n_frames=24, size=(40, 30))
+    cfg = load_preset("tiny")
+    cfg.final_eval_max_side, cfg.eval_max_side = 40, 8
+    tr = Trainer(ds, tmp_path / "run", cfg, device="cpu", max_minutes=1.0, show_progress=False)
+    tr._eval_s_per_px = 0.001  # 3 frames x 1200 px -> 3.6 s, well under a tenth of a minute: kept
+    assert tr.final_side() == 40
+    tr._eval_s_per_px = 0.01  # 36 s at 40 px: shrunk to spend 6 s
+    side = tr.final_side()
+    assert 8 <= side < 40 and tr._final_eval_cost(side) <= 6.0 + 1e-6
+    tr._eval_s_per_px = 10.0  # never below the periodic evaluation's size
+    assert tr.final_side() == 8
+    tr.max_minutes = 0.0  # no time limit: always the configured size
+    assert tr.final_side() == 40

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from interreal import atomic
+from interreal.dataset import Intrinsics
 from interreal.report import StageReport
 
 from . import losses as L
@@ -112,6 +113,12 @@ def load_run(run_dir: str | Path, device: str = "auto", checkpoint: str | int | 
 # ----------------------------------------------------------------------------------------------------------------
 # Training
 # ----------------------------------------------------------------------------------------------------------------
+def within_side(intr: Intrinsics, side: int) -> Intrinsics:
+    """The camera scaled down (never up) so its longer side is at most `side` pixels: evaluation renders."""
+    s = min(1.0, side / max(intr.w, intr.h))
+    return intr.scaled(max(1, round(intr.w * s)), max(1, round(intr.h * s)))
+
+
 def lr_factor(step: int, cfg: TrainConfig, time_frac: float = 0.0) -> float:
     """Linear warm-up, then cosine decay to `lr_final_ratio`.
 
@@ -307,9 +314,8 @@ class Trainer:
         """Seconds the final evaluation takes at long side `side`, at the measured render speed."""
         held = self.views.held_out or self.views.train
         n = min(self.cfg.final_eval_frames, len(held)) if self.cfg.final_eval_frames > 0 else len(held)
-        intr = self.views.intrinsics[held[0]]
-        s = min(1.0, side / max(intr.w, intr.h))
-        return n * (intr.w * s) * (intr.h * s) * self._eval_s_per_px
+        small = within_side(self.views.intrinsics[held[0]], side)
+        return n * small.w * small.h * self._eval_s_per_px
 
     def final_side(self) -> int:
         """`final_eval_max_side`, lowered (not below `eval_max_side`) where it would spend more than a tenth of a
@@ -334,9 +340,7 @@ class Trainer:
         from .render import render_view
 
         run = Run(self.run_dir, self.model, self.views, self.cfg, self.device, self.step)
-        intr = self.views.intrinsics[i]
-        s = min(1.0, max_side / max(intr.w, intr.h))
-        small = intr.scaled(max(1, round(intr.w * s)), max(1, round(intr.h * s)))
+        small = within_side(self.views.intrinsics[i], max_side)
         self.model.eval()
         out = render_view(run, self.views.c2w_gl[i], small, None, time=float(self.views.times[i]))
         self.model.train()
@@ -357,9 +361,8 @@ class Trainer:
         """heldout_psnr at `eval_max_side`, recording the render speed that `end_reserve` plans with."""
         t0 = time.perf_counter()
         value = self.heldout_psnr(i, self.cfg.eval_max_side)
-        intr = self.views.intrinsics[i]
-        s = min(1.0, self.cfg.eval_max_side / max(intr.w, intr.h))
-        self._eval_s_per_px = (time.perf_counter() - t0) / max(intr.w * s * intr.h * s, 1.0)
+        small = within_side(self.views.intrinsics[i], self.cfg.eval_max_side)
+        self._eval_s_per_px = (time.perf_counter() - t0) / (small.w * small.h)
         return value
 
     def final_eval(self) -> dict[str, Any]:

@@ -99,9 +99,10 @@ def _mask_summary(ds: Path) -> str:
     """Without truth: what the masks stage itself measured (its confidence; its warnings are printed too)."""
     from .report import read_report
 
-    fig = (read_report(ds, "masks") or {}).get("figures", {})
+    report = read_report(ds, "masks") or {}
+    fig = report.get("figures", {})
     conf = ", ".join(f"{n} {v:.2f}" for n, v in fig.get("confidence_mean", {}).items())
-    n_warn = len((read_report(ds, "masks") or {}).get("warnings", []))
+    n_warn = len(report.get("warnings", []))
     return (f"{len(fig.get('keyframes', []))} keyframes -> {fig.get('frames', '?')} frames, mean confidence {conf}"
             + (f", {n_warn} warning{'s' if n_warn > 1 else ''}" if n_warn else ""))
 

@@ -36,8 +36,6 @@ def configure_threads(threads: int = 0) -> int:
     """Set torch's CPU threads. 0 = auto: all cores, or 1 when the machine is already busy (load average above
     half the cores): OpenMP workers that wait on descheduled siblings made a shared 2-core machine 10-100x
     slower per step than one thread. Returns the number used."""
-    import os
-
     if threads <= 0:
         cores = os.cpu_count() or 1
         others = other_processes_cores()
@@ -57,7 +55,6 @@ def other_processes_cores(window: float = 0.5) -> float | None:
     Not the load average: after `interreal process` ran SfM in this very process, the 1-minute average still reads
     about 2 on a quiet machine, and the trainer would wrongly drop to one thread.
     """
-    import os
     import time
 
     def busy_total() -> int:

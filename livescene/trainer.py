@@ -8,6 +8,7 @@ good checkpoint with a halved learning rate; after `max_divergence_retries` it s
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import math
@@ -312,10 +313,9 @@ class Trainer:
     # -- time budget -----------------------------------------------------------------------------------------------
     def _final_eval_cost(self, side: int) -> float:
         """Seconds the final evaluation takes at long side `side`, at the measured render speed."""
-        held = self.views.held_out or self.views.train
-        n = min(self.cfg.final_eval_frames, len(held)) if self.cfg.final_eval_frames > 0 else len(held)
-        small = within_side(self.views.intrinsics[held[0]], side)
-        return n * small.w * small.h * self._eval_s_per_px
+        frames = self.final_frames
+        small = within_side(self.views.intrinsics[frames[0]], side)
+        return len(frames) * small.w * small.h * self._eval_s_per_px
 
     def final_side(self) -> int:
         """`final_eval_max_side`, lowered (not below `eval_max_side`) where it would spend more than a tenth of a
@@ -350,9 +350,21 @@ class Trainer:
         gt = cv2.resize(gt, (small.w, small.h), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
         return L.psnr(np.mean((out["rgb"] - gt) ** 2))
 
+    def eval_pool(self) -> list[int]:
+        """Frames the evaluations render: the held-out ones (the training frames when nothing is held out)."""
+        return list(self.views.held_out or self.views.train)
+
+    @functools.cached_property
+    def final_frames(self) -> list[int]:
+        """The final evaluation's `final_eval_frames` frames, spread through the video (fixed for the run; the time
+        budget asks for them every step)."""
+        from .evaluate import pick_frames
+
+        return pick_frames(self.eval_pool(), self.cfg.final_eval_frames)
+
     def quick_eval(self) -> dict[str, float]:
         """PSNR of one held-out frame (cycling through them) at `eval_max_side`: cheap enough to run while training."""
-        held = self.views.held_out or self.views.train
+        held = self.eval_pool()
         i = held[self.eval_cursor % len(held)]
         self.eval_cursor += 1
         return {"psnr": self._timed_psnr(i), "frame": int(i)}
@@ -370,10 +382,7 @@ class Trainer:
 
         One small frame is too noisy to judge the fit on (the stress suite saw 25.0 dB there for a run whose full
         evaluation gave 23.9), so the low-fit warning reads this instead."""
-        from .evaluate import pick_frames
-
-        held = self.views.held_out or self.views.train
-        frames = pick_frames(list(held), self.cfg.final_eval_frames)
+        frames = self.final_frames
         side = self.final_side()
         scores = [self.heldout_psnr(i, side) for i in frames]
         return {"psnr": float(np.mean(scores)), "frames": [int(i) for i in frames], "max_side": side,
@@ -399,19 +408,19 @@ class Trainer:
         if self.step == 0:
             self.save_checkpoint()
         if self.max_minutes and not self._eval_s_per_px:  # a time limit needs the final evaluation's cost up front
-            held = self.views.held_out or self.views.train
+            first = self.eval_pool()[0]
             self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2),
-                       "psnr": self._timed_psnr(held[0]), "frame": int(held[0])})
+                       "psnr": self._timed_psnr(first), "frame": int(first)})
         if self._t_init is not None:  # loading, setting up and that first render, once per process
             self.overhead += time.perf_counter() - self._t_init
             self._t_init = None
         t_start = time.perf_counter() - self.elapsed
+        overhead_start = self.overhead  # evaluations and checkpoints in the loop add to it; elapsed leaves them out
         last = {}
         acc: dict[str, list[float]] = {}
         bar = tqdm(total=cfg.steps, initial=self.step, desc="train", disable=not self.show_progress,
                    dynamic_ncols=True, unit="step")
         stop_reason = "steps"
-        eval_time = 0.0
         self.model.train()
         while self.step < cfg.steps:
             info = self.train_step()
@@ -420,7 +429,7 @@ class Trainer:
                 continue
             for k, v in info.items():
                 acc.setdefault(k, []).append(v)
-            self.elapsed = time.perf_counter() - t_start - eval_time
+            self.elapsed = time.perf_counter() - t_start - (self.overhead - overhead_start)
             bar.update(1)
             if self.step % cfg.log_every == 0 or self.step == cfg.steps:
                 rec = {k: float(np.mean(v)) for k, v in acc.items()}
@@ -434,12 +443,10 @@ class Trainer:
                 ev = self.quick_eval()
                 self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2), **ev})
                 bar.write(f"step {self.step}: held-out PSNR {ev['psnr']:.2f} dB (frame position {ev['frame']})")
-                eval_time += time.perf_counter() - t0
                 self.overhead += time.perf_counter() - t0
             if cfg.ckpt_every and self.step % cfg.ckpt_every == 0:
                 t0 = time.perf_counter()
                 self.save_checkpoint()
-                eval_time += time.perf_counter() - t0
                 self.overhead += time.perf_counter() - t0
             if self.max_minutes and self.elapsed >= self.train_budget():
                 stop_reason = "max-minutes"

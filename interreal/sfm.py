@@ -8,9 +8,14 @@ What differs from ns-process-data, and why (measured in reference/process-data.m
 - Per-image masks drop object pixels from features: moving parts otherwise corrupt poses.
 - Exhaustive matching for small sets, sequential (quadratic overlap) + loop detection with a vocabulary tree built
   from the capture's own descriptors for larger ones (no download: an empty tree path aborts the process offline).
-- Long videos (>= KEY_STRIDE_MIN frames): every 3rd frame is matched and mapped first; the others are matched to
-  their neighbours and registered into that model (PnP + local BA), then one final BA polishes all. Incremental
-  BA's cost grows faster than linearly with the frame count, so this halves the time on 300 frames.
+- Frames SIFT sees at native size (<= 1000 px) get its 2x upsampled octave, which finds the fine features that
+  make small frames accurate; in long videos (>= KEY_STRIDE_MIN frames of >= FINE_MIN_SIDE px) only every 3rd
+  frame gets it, the others octave 0: features, matches and mapping cost about half, the tracks still run
+  through the fine frames (simulator, 300 frames at 640x480: 166 s instead of 343 s, 0.055 vs 0.040 deg).
+  (`--key-stride N` maps every Nth frame first and registers the rest after: faster, less accurate.)
+- Before the final BA, on such dense captures, every track's keypoints are aligned to one view of the track
+  (Lucas-Kanade on image patches, `keypoints.py`): SIFT locates each observation on its own, BA needs them to
+  agree (`use_track_refinement` gives where it helped and where not).
 - The LARGEST model is kept (not sparse/0) and the others are reported; under 90 % registered a retry ladder runs.
 - Gravity-like orientation ("vertical"), centred and scaled to max |t| = 1; the transform is recorded.
 - Resumable: features, matches and the final model are reused when their inputs and settings are unchanged.
@@ -38,10 +43,13 @@ from .conventions import (
 )
 from .dataset import Frame, Intrinsics, list_images, write_transforms
 from .errors import InputError, StageError
+from .keypoints import refine_tracks
 from .report import StageReport, fingerprint, warning_lines
 
 COLMAP_DIR = "colmap"
-KEY_STRIDE_MIN = 150  # frames from which a sequential capture is mapped on every 3rd frame first (auto key_stride)
+KEY_STRIDE_MIN = 150  # frames from which a sequential capture gets SIFT's upsampled octave on every 3rd frame only
+FINE_MIN_SIDE = 640  # ... if its frames are this large: octave 0 finds ~520 features a frame at 640x480 (1660 with
+# octave -1), ~130 at 320x240, too few (45 frames at 320x240: 0.86 deg with every 3rd frame fine, < 0.5 all fine)
 SFM_MASKS_DIR = "sfm_masks"
 PLY_FILE = "sparse_pc.ply"
 
@@ -59,8 +67,11 @@ class SfMConfig:
     matcher: str = "auto"  # auto | sequential | exhaustive
     exhaustive_max: int = 40  # auto: exhaustive up to this many images (n^2/2 pairs; sequential beyond)
     overlap: int = 6  # + quadratic (i+1..6, i+2^k) + loop detection; the retry ladder triples it
-    key_stride: int = 0  # sequential captures: map every Nth frame first, then register the rest into that model
-    # (0 = auto: 3 from KEY_STRIDE_MIN frames on, else 1 = all frames at once)
+    fine_octave_stride: int = 0  # with octave -1: only every Nth frame gets it, the others octave 0 (0 = auto: 3
+    # for sequential captures of KEY_STRIDE_MIN frames or more at FINE_MIN_SIDE px, else 1 = every frame).
+    # Simulator, 300 frames at 640x480 (rotation gauge): 166 s at 0.055 deg; every frame fine: 343 s at 0.040 deg
+    key_stride: int = 1  # sequential captures: map every Nth frame first, then register the rest into that model
+    # (simulator, with fine_octave_stride 3: 151 s at 0.068 deg with 3, 161-166 s at 0.052-0.055 deg with 1)
     quadratic_overlap: bool = True
     loop_detection: bool = True
     mapper: str = "incremental"  # incremental | global
@@ -72,6 +83,8 @@ class SfMConfig:
     undistort: bool = False  # also write DS/undistorted/ (pinhole images + model) for splatting trainers
     ba_tolerance: float = 1e-6  # relative cost change that ends a global BA (Ceres function_tolerance; COLMAP: 0, i.e.
     # 100 iterations): the final BA took half the time at the same error (synth 60: 0.0528 vs 0.0523 deg)
+    refine_tracks: str = "auto"  # align each track's keypoints to one view (KLT) before the final BA: on | off |
+    # auto = on for dense captures at native size (see `use_track_refinement`)
     principal_point: str = "auto"  # final BA: auto (free (cx, cy) only when it clearly helps) | refine | fixed
     seed: int = 0
     num_threads: int = -1
@@ -245,29 +258,61 @@ class Rung:
 
 def extract(pc, db: Path, image_dir: Path, names: list[str], mask_dir: Path | None, cfg: SfMConfig,
             log: NativeLog | None = None, chunk: int = 16) -> None:
-    """SIFT into a fresh database, in chunks (for the progress bar); every chunk reuses the one shared camera."""
+    """SIFT into a fresh database, in chunks (for the progress bar); every chunk reuses the one shared camera.
+    Frames of `fine_frames` get the first octave `resolve_octave` chose, the others octave 0."""
     ext = pc.FeatureExtractionOptions(num_threads=cfg.num_threads, use_gpu=False, max_image_size=cfg.sfm_long_side)
     ext.sift.max_num_features = cfg.max_features
-    ext.sift.first_octave = resolve_octave(cfg, image_dir / names[0])
+    octave = resolve_octave(cfg, image_dir / names[0])
+    fine = set(fine_frames(cfg, len(names), octave, max(_image_hw(image_dir / names[0]))))
+    groups = [(octave, [n for i, n in enumerate(names) if i in fine]),
+              (0, [n for i, n in enumerate(names) if i not in fine])]
     if db.exists():
         db.unlink()
     bar = log.bar(len(names), "features") if log else None
-    for k in range(0, len(names), chunk):
-        reader = pc.ImageReaderOptions(camera_model=cfg.camera_model)
-        if mask_dir is not None:
-            reader.mask_path = str(mask_dir)
-        if k:
-            reader.existing_camera_id = 1
-        pc.extract_features(str(db), str(image_dir), image_names=names[k:k + chunk],
-                            camera_mode=pc.CameraMode.SINGLE, reader_options=reader, extraction_options=ext,
-                            device=pc.Device.cpu)
-        if bar is not None:
-            bar.update(len(names[k:k + chunk]))
+    first = True
+    for oct_, group in groups:
+        ext.sift.first_octave = oct_
+        for k in range(0, len(group), chunk):
+            reader = pc.ImageReaderOptions(camera_model=cfg.camera_model)
+            if mask_dir is not None:
+                reader.mask_path = str(mask_dir)
+            if not first:
+                reader.existing_camera_id = 1
+            first = False
+            pc.extract_features(str(db), str(image_dir), image_names=group[k:k + chunk],
+                                camera_mode=pc.CameraMode.SINGLE, reader_options=reader, extraction_options=ext,
+                                device=pc.Device.cpu)
+            if bar is not None:
+                bar.update(len(group[k:k + chunk]))
     if bar is not None:
         bar.close()
     with pc.Database.open(str(db)) as d:
         if d.num_cameras() != 1:
             raise StageError(f"feature extraction made {d.num_cameras()} cameras, expected one shared camera")
+
+
+def fine_frames(cfg: SfMConfig, n: int, octave: int, long_side: int) -> list[int]:
+    """Positions of the frames that get SIFT's upsampled octave (octave -1): every `fine_octave_stride`-th frame
+    (auto: every 3rd of a sequential capture of KEY_STRIDE_MIN frames or more at FINE_MIN_SIDE px or more, else
+    all); all frames when the octave is not -1 (nothing to save)."""
+    auto = n >= KEY_STRIDE_MIN and long_side >= FINE_MIN_SIDE and cfg.matcher != "exhaustive"
+    stride = cfg.fine_octave_stride or (3 if auto else 1)
+    return key_positions(n, stride if octave < 0 else 1)
+
+
+def use_track_refinement(cfg: SfMConfig, n: int, sample: Path) -> bool:
+    """Whether to align each track's keypoints to one view before the final BA (`keypoints.refine_tracks`).
+
+    auto = where it was measured to help: sequential captures of KEY_STRIDE_MIN frames or more that SIFT sees at
+    native size, FINE_MIN_SIDE px or more (simulator, 300 frames at 640x480: rotation error 0.065 -> 0.060 deg and
+    centres 0.048 -> 0.042 % on one model, 0.056 -> 0.046 deg and 0.037 -> 0.033 % on another). Elsewhere the
+    translation-only alignment meets larger changes of view per pixel and did not help: 300 frames at 320x240
+    0.115 -> 0.118 deg, centres 0.104 -> 0.116 %; 90 frames at 320x240 0.163 -> 0.143 deg but centres 0.079 ->
+    0.104 %; fox (50 photos, SIFT at 1000 of 1600 px) unchanged (0.0925 -> 0.0922 deg, 0.032 -> 0.033 %)."""
+    if cfg.refine_tracks in ("on", "off"):
+        return cfg.refine_tracks == "on"
+    side = max(_image_hw(sample))
+    return n >= KEY_STRIDE_MIN and side <= cfg.sfm_long_side and side >= FINE_MIN_SIDE and cfg.matcher != "exhaustive"
 
 
 def resolve_octave(cfg: SfMConfig, sample: Path) -> int:
@@ -452,7 +497,7 @@ def ladder(cfg: SfMConfig, n: int) -> list[Rung]:
         base = Rung("base", "exhaustive", cfg.overlap, False, cfg.mapper)
         rungs = [base, replace(base, name="relaxed", relaxed=True)]
     else:
-        stride = cfg.key_stride or (3 if n >= KEY_STRIDE_MIN else 1)
+        stride = max(1, cfg.key_stride)
         base = Rung("base", "sequential", cfg.overlap, cfg.loop_detection, cfg.mapper,
                     stride=stride if cfg.mapper == "incremental" else 1)
         rungs = [base, replace(base, name="more-overlap", overlap=cfg.overlap * 3, loop_detection=True, stride=1)]
@@ -671,7 +716,8 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
             rep.warn("no object masks (DS/masks or DS/sfm_masks): moving parts may corrupt poses; run "
                      "`interreal masks DS --keyframes DIR` first", cause="no-masks")
         fp_feat = fingerprint("features", _files_fp(images), _files_fp(mask_files) if mask_files else None,
-                              cfg.sfm_long_side, cfg.max_features, resolve_octave(cfg, images[0]), cfg.camera_model)
+                              cfg.sfm_long_side, cfg.max_features, resolve_octave(cfg, images[0]), cfg.camera_model,
+                              fine_frames(cfg, len(images), resolve_octave(cfg, images[0]), max(_image_hw(images[0]))))
         db = work / "database.db"
         with rep.step("features") as st:
             if state.get("features") == fp_feat and db.exists():
@@ -797,6 +843,13 @@ def _run_ladder(pc, ds, work, db, names, rungs, fp_feat, state, state_path, cfg,
                          f"({', '.join(t['rung'] for t in tried)}): the frames share too few features; film slower, "
                          "with more texture and overlap")
     _, rung, rec, models, sizes = best
+    refine = use_track_refinement(cfg, n, ds / IMAGES_DIR / names[0])
+    rep.figures["track_refinement"] = refine
+    if refine:
+        with rep.step("refine_tracks") as st, NativeLog(work / "colmap.log", cfg.verbose) as log:
+            bar = log.bar(rec.num_reg_images(), "track refinement")
+            st.update(refine_tracks(rec, ds / IMAGES_DIR, bar=bar))
+            bar.close()
     with rep.step("refine_intrinsics") as st:
         with NativeLog(work / "colmap.log", cfg.verbose):
             res = refine_intrinsics(pc, rec, cfg, cfg.principal_point)
@@ -844,14 +897,21 @@ def add_sfm_options(p) -> None:
     p.add_argument("--camera-model", choices=("SIMPLE_RADIAL", "RADIAL", "OPENCV"), default="RADIAL",
                    help="shared camera model (default RADIAL: f, cx, cy, k1, k2; never PINHOLE for phone frames)")
     p.add_argument("--max-features", type=int, default=2048)
-    p.add_argument("--key-stride", type=int, default=0,
-                   help=f"map every Nth frame first, then register the others into that model (0 = auto: 3 for "
-                        f"sequential captures of >= {KEY_STRIDE_MIN} frames, else 1 = all at once; 1 is slower, a bit "
-                        "more accurate)")
+    p.add_argument("--key-stride", type=int, default=1,
+                   help="map every Nth frame first, then register the others into that model (default 1 = all at "
+                        "once; 3 is a little faster on long videos and less accurate)")
+    p.add_argument("--fine-octave-stride", type=int, default=0,
+                   help="when SIFT sees frames at native size it also searches a 2x upsampled octave; give it to "
+                        f"every Nth frame only (0 = auto: 3 for sequential captures of >= {KEY_STRIDE_MIN} frames, "
+                        "else 1 = every frame; 1 is twice as slow there, a bit more accurate)")
     p.add_argument("--principal-point", choices=("auto", "refine", "fixed"), default="auto",
                    help="final bundle adjustment: free (cx, cy) when it clearly lowers the error (auto), always "
                         "(refine, as ns-process-data), or never")
     p.add_argument("--orientation", choices=("vertical", "up", "none"), default="vertical")
+    p.add_argument("--refine-tracks", choices=("auto", "on", "off"), default="auto",
+                   help="align each track's keypoints to one view (Lucas-Kanade) before the final bundle adjustment "
+                        f"(auto: for sequential captures of >= {KEY_STRIDE_MIN} frames at native size >= "
+                        f"{FINE_MIN_SIDE} px, where it was measured to help)")
     p.add_argument("--no-masks", action="store_true", help="do not mask object pixels out of SfM features")
     p.add_argument("--undistort", action="store_true", help="also write DS/undistorted/ (pinhole images, COLMAP model)")
     p.add_argument("--verbose", action="store_true", help="show COLMAP's log")
@@ -860,7 +920,8 @@ def add_sfm_options(p) -> None:
 def sfm_options(args) -> dict[str, Any]:
     return {"sfm_long_side": args.sfm_long_side, "matcher": args.matcher, "mapper": args.mapper,
             "camera_model": args.camera_model, "max_features": args.max_features, "orientation": args.orientation,
-            "key_stride": args.key_stride,
+            "key_stride": args.key_stride, "fine_octave_stride": args.fine_octave_stride,
+            "refine_tracks": args.refine_tracks,
             "use_masks": not args.no_masks, "verbose": args.verbose,
             "principal_point": args.principal_point, "undistort": args.undistort}
 

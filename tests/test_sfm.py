@@ -141,6 +141,29 @@ def test_small_capture_end_to_end_with_masks(posed, capture):
     assert validate(ds, check_masks=False).kinds() <= {"no-mapping", "no-labels"}
 
 
+def test_track_refinement_pulls_perturbed_keypoints_back(posed):
+    """Every track's observations are aligned to its reference view: moved off by up to 0.6 px, they come back."""
+    import pycolmap
+
+    from interreal.keypoints import _observations, refine_tracks
+
+    ds, _ = posed
+    rep = json.loads((ds / "reports" / "poses.json").read_text())
+    assert rep["figures"]["track_refinement"] is False  # auto: 24 frames at 320x240 are not where it helps
+    rec = pycolmap.Reconstruction(str(ds / "colmap" / "sparse" / "0"))
+    refine_tracks(rec, ds / "images")  # the aligned positions: what a second pass must come back to
+    obs = _observations(rec)
+    before = np.array([rec.images[int(i)].points2D[int(k)].xy for i, k in obs[:, 2:]])
+    noise = np.random.default_rng(0).uniform(-0.6, 0.6, before.shape)
+    for (i, k), q in zip(obs[:, 2:], before + noise):
+        rec.images[int(i)].points2D[int(k)].xy = q
+    info = refine_tracks(rec, ds / "images")
+    after = np.array([rec.images[int(i)].points2D[int(k)].xy for i, k in obs[:, 2:]])
+    back = np.linalg.norm(after - before, axis=1)
+    assert info["observations"] == len(obs) and info["refined_frac"] > 0.6
+    assert np.median(back) < 0.1 < np.median(np.linalg.norm(noise, axis=1)), np.median(back)
+
+
 @pytest.mark.slow
 def test_rerun_reuses_the_finished_model(posed):
     ds, fig = posed
@@ -219,6 +242,36 @@ def test_strided_mapping_registers_every_frame(tmp_path):
     assert err["rot_err_deg_median"] < 0.5 and err["center_err_pct_median"] < 0.3, err
     rep = json.loads((ds / "reports" / "poses.json").read_text())
     assert rep["ladder"][0]["stride"] == 3
+
+
+@pytest.mark.slow
+def test_upsampled_octave_on_every_third_frame(tmp_path):
+    """Long captures at native size give SIFT's upsampled octave to every 3rd frame only (forced here on a short
+    one): those frames carry more (finer) features, and every frame still registers accurately."""
+    import pycolmap
+
+    from interreal.sfm import SfMConfig, fine_frames
+
+    assert fine_frames(SfMConfig(), 300, -1, 640) == list(range(0, 300, 3)) + [299]
+    assert fine_frames(SfMConfig(), 300, 0, 640) == list(range(300))  # frames downscaled for SIFT: nothing to save
+    assert fine_frames(SfMConfig(), 60, -1, 640) == list(range(60))  # short captures: every frame
+    assert fine_frames(SfMConfig(), 300, -1, 320) == list(range(300))  # small frames: octave 0 finds too little
+    cap = render_capture(tmp_path / "cap", frames=30, size=(640, 480))
+    ds = tmp_path / "ds"
+    extract_frames(cap / "video.mp4", ds, target=30)
+    truth_masks_npy(cap, ds)
+    fig = estimate_poses(ds, fine_octave_stride=3, matcher="sequential", refine_tracks="on")
+    assert fig["registered"] == fig["total"] == 30 and fig["track_refinement"] is True
+    rep = json.loads((ds / "reports" / "poses.json").read_text())
+    assert rep["steps"]["refine_tracks"]["refined_frac"] > 0.6  # measured 0.84 on 300 frames at 640x480
+    err = errors(ds, gt(cap))
+    assert err["rot_err_deg_median"] < 0.35 and err["center_err_pct_median"] < 0.2, err  # measured 0.19, 0.067
+    with pycolmap.Database.open(str(ds / "colmap" / "database.db")) as d:
+        counts = {im.name: d.num_keypoints_for_image(im.image_id) for im in d.read_all_images()}
+    names = sorted(counts)
+    fine = [counts[n] for i, n in enumerate(names) if i % 3 == 0 or i == len(names) - 1]
+    coarse = [counts[n] for i, n in enumerate(names) if not (i % 3 == 0 or i == len(names) - 1)]
+    assert np.mean(fine) > 1.3 * np.mean(coarse), (np.mean(fine), np.mean(coarse))
 
 
 def test_rotation_error_in_both_gauges():

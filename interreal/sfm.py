@@ -12,7 +12,8 @@ What differs from ns-process-data, and why (measured in reference/process-data.m
   make small frames accurate; in long videos (>= KEY_STRIDE_MIN frames of >= FINE_MIN_SIDE px) only every 3rd
   frame gets it, the others octave 0: features, matches and mapping cost about half, the tracks still run
   through the fine frames (simulator, 300 frames at 640x480: 166 s instead of 343 s, 0.055 vs 0.040 deg).
-  (`--key-stride N` maps every Nth frame first and registers the rest after: faster, less accurate.)
+  Long videos whose frames all get the same octaves (e.g. 320 px frames) map every 3rd frame first and register
+  the rest into that model (PnP + local BA): half the mapping time on 300 frames.
 - Before the final BA, on such dense captures, every track's keypoints are aligned to one view of the track
   (Lucas-Kanade on image patches, `keypoints.py`): SIFT locates each observation on its own, BA needs them to
   agree (`use_track_refinement` gives where it helped and where not).
@@ -70,8 +71,10 @@ class SfMConfig:
     fine_octave_stride: int = 0  # with octave -1: only every Nth frame gets it, the others octave 0 (0 = auto: 3
     # for sequential captures of KEY_STRIDE_MIN frames or more at FINE_MIN_SIDE px, else 1 = every frame).
     # Simulator, 300 frames at 640x480 (rotation gauge): 166 s at 0.055 deg; every frame fine: 343 s at 0.040 deg
-    key_stride: int = 1  # sequential captures: map every Nth frame first, then register the rest into that model
-    # (simulator, with fine_octave_stride 3: 151 s at 0.068 deg with 3, 161-166 s at 0.052-0.055 deg with 1)
+    key_stride: int = 0  # sequential captures: map every Nth frame first, then register the rest into that model
+    # (0 = auto: 3 from KEY_STRIDE_MIN frames on unless the octaves are mixed, else 1 = all at once). Simulator at
+    # 640x480 with fine_octave_stride 3: 151 s at 0.068 deg with 3, 161-166 s at 0.052-0.055 deg with 1; at 320x240
+    # (every frame fine) the strided way keeps the demo's poses stage at ~68 s
     quadratic_overlap: bool = True
     loop_detection: bool = True
     mapper: str = "incremental"  # incremental | global
@@ -491,13 +494,15 @@ def refine_intrinsics(pc, rec, cfg: SfMConfig, mode: str | bool = "auto") -> dic
     return {"principal_point": "fixed", **info}
 
 
-def ladder(cfg: SfMConfig, n: int) -> list[Rung]:
-    """The base attempt, then what to try when too few frames register (each rung only adds matches)."""
+def ladder(cfg: SfMConfig, n: int, mixed_octaves: bool = False) -> list[Rung]:
+    """The base attempt, then what to try when too few frames register (each rung only adds matches).
+    mixed_octaves: only some frames got SIFT's upsampled octave (`fine_frames`); auto key_stride then maps all
+    frames at once, since the strided way gives the fine frames' tracks fewer views."""
     if cfg.matcher == "exhaustive" or (cfg.matcher == "auto" and n <= cfg.exhaustive_max):
         base = Rung("base", "exhaustive", cfg.overlap, False, cfg.mapper)
         rungs = [base, replace(base, name="relaxed", relaxed=True)]
     else:
-        stride = max(1, cfg.key_stride)
+        stride = cfg.key_stride or (3 if n >= KEY_STRIDE_MIN and not mixed_octaves else 1)
         base = Rung("base", "sequential", cfg.overlap, cfg.loop_detection, cfg.mapper,
                     stride=stride if cfg.mapper == "incremental" else 1)
         rungs = [base, replace(base, name="more-overlap", overlap=cfg.overlap * 3, loop_detection=True, stride=1)]
@@ -715,9 +720,10 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
         if cfg.use_masks and mask_src == "none":
             rep.warn("no object masks (DS/masks or DS/sfm_masks): moving parts may corrupt poses; run "
                      "`interreal masks DS --keyframes DIR` first", cause="no-masks")
+        fine = fine_frames(cfg, len(images), resolve_octave(cfg, images[0]), max(_image_hw(images[0])))
         fp_feat = fingerprint("features", _files_fp(images), _files_fp(mask_files) if mask_files else None,
                               cfg.sfm_long_side, cfg.max_features, resolve_octave(cfg, images[0]), cfg.camera_model,
-                              fine_frames(cfg, len(images), resolve_octave(cfg, images[0]), max(_image_hw(images[0]))))
+                              fine)
         db = work / "database.db"
         with rep.step("features") as st:
             if state.get("features") == fp_feat and db.exists():
@@ -730,7 +736,7 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
                 st["reused"] = False
             with pc.Database.open(str(db)) as d:
                 st["keypoints_mean"] = round(d.num_keypoints() / max(1, d.num_images()), 1)
-        rungs = ladder(cfg, len(images))
+        rungs = ladder(cfg, len(images), mixed_octaves=len(fine) < len(images))
         fp_final = fingerprint(fp_feat, {k: v for k, v in settings.items() if k not in ("verbose", "undistort")},
                                [asdict(r) for r in rungs])
         final = work / "sparse" / "0"
@@ -897,9 +903,10 @@ def add_sfm_options(p) -> None:
     p.add_argument("--camera-model", choices=("SIMPLE_RADIAL", "RADIAL", "OPENCV"), default="RADIAL",
                    help="shared camera model (default RADIAL: f, cx, cy, k1, k2; never PINHOLE for phone frames)")
     p.add_argument("--max-features", type=int, default=2048)
-    p.add_argument("--key-stride", type=int, default=1,
-                   help="map every Nth frame first, then register the others into that model (default 1 = all at "
-                        "once; 3 is a little faster on long videos and less accurate)")
+    p.add_argument("--key-stride", type=int, default=0,
+                   help="map every Nth frame first, then register the others into that model (0 = auto: 3 for "
+                        f"sequential captures of >= {KEY_STRIDE_MIN} frames whose frames all get the same SIFT "
+                        "octaves, else 1 = all at once; 1 is slower, a bit more accurate)")
     p.add_argument("--fine-octave-stride", type=int, default=0,
                    help="when SIFT sees frames at native size it also searches a 2x upsampled octave; give it to "
                         f"every Nth frame only (0 = auto: 3 for sequential captures of >= {KEY_STRIDE_MIN} frames, "

@@ -10,7 +10,8 @@ rotation-averaging benchmarks do: the centre fit tilts every camera by what cent
 wall_s (frames + poses), plus step times. Variants:
 - ours-masks / ours-nomasks: `extract_frames` + `estimate_poses` with defaults (synth: with and without the truth
   object masks as DS/sfm_masks); fox has no moving parts, so only `ours`. ours-masks-fine (>= 150 frames): SIFT's
-  upsampled octave on every frame instead of every 3rd (the default for long captures): the speed/accuracy trade.
+  upsampled octave on every frame instead of every 3rd (the default for long captures), all frames mapped at once
+  as in the default: the speed/accuracy trade.
 - baseline: ns-process-data's recipe: frames at full size picked uniformly (all of them here), OPENCV camera, SIFT at
   COLMAP defaults, sequential matching (overlap 10, quadratic, no loop detection), incremental mapping with
   ba_global_function_tolerance=1e-6, sparse/0 taken as is, then a principal-point bundle adjustment
@@ -177,7 +178,7 @@ def bench_synth(work: Path, frames: int, baseline: bool) -> list[dict]:
     runs = []
     variants = [("ours-masks", cap, {}), ("ours-nomasks", None, {})]
     if frames >= KEY_STRIDE_MIN:  # the default gives SIFT's upsampled octave to every 3rd frame; this one to all
-        variants.append(("ours-masks-fine", cap, {"fine_octave_stride": 1}))
+        variants.append(("ours-masks-fine", cap, {"fine_octave_stride": 1, "key_stride": 1}))
     for variant, masks, sfm in variants:
         est, wall, extra = run_ours(cap / "video.mp4", work / f"synth_{variant}", masks_from=masks, sfm=sfm,
                                     target=frames)

@@ -250,12 +250,14 @@ def test_upsampled_octave_on_every_third_frame(tmp_path):
     one): those frames carry more (finer) features, and every frame still registers accurately."""
     import pycolmap
 
-    from interreal.sfm import SfMConfig, fine_frames
+    from interreal.sfm import SfMConfig, fine_frames, ladder
 
     assert fine_frames(SfMConfig(), 300, -1, 640) == list(range(0, 300, 3)) + [299]
     assert fine_frames(SfMConfig(), 300, 0, 640) == list(range(300))  # frames downscaled for SIFT: nothing to save
     assert fine_frames(SfMConfig(), 60, -1, 640) == list(range(60))  # short captures: every frame
     assert fine_frames(SfMConfig(), 300, -1, 320) == list(range(300))  # small frames: octave 0 finds too little
+    # mixed octaves map every frame at once; uniform ones map every 3rd frame first (the strided test below)
+    assert ladder(SfMConfig(), 300, mixed_octaves=True)[0].stride == 1 and ladder(SfMConfig(), 300)[0].stride == 3
     cap = render_capture(tmp_path / "cap", frames=30, size=(640, 480))
     ds = tmp_path / "ds"
     extract_frames(cap / "video.mp4", ds, target=30)

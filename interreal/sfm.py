@@ -909,8 +909,8 @@ def add_sfm_options(p) -> None:
                         "octaves, else 1 = all at once; 1 is slower, a bit more accurate)")
     p.add_argument("--fine-octave-stride", type=int, default=0,
                    help="when SIFT sees frames at native size it also searches a 2x upsampled octave; give it to "
-                        f"every Nth frame only (0 = auto: 3 for sequential captures of >= {KEY_STRIDE_MIN} frames, "
-                        "else 1 = every frame; 1 is twice as slow there, a bit more accurate)")
+                        f"every Nth frame only (0 = auto: 3 for sequential captures of >= {KEY_STRIDE_MIN} frames of "
+                        f">= {FINE_MIN_SIDE} px, else 1 = every frame; 1 is twice as slow there, a bit more accurate)")
     p.add_argument("--principal-point", choices=("auto", "refine", "fixed"), default="auto",
                    help="final bundle adjustment: free (cx, cy) when it clearly lowers the error (auto), always "
                         "(refine, as ns-process-data), or never")

@@ -56,6 +56,13 @@ def _observations(rec) -> np.ndarray:
     return np.asarray(rows, dtype=np.int64).reshape(-1, 4)
 
 
+def _rows_by_image(ids: np.ndarray) -> dict[int, np.ndarray]:
+    """Row positions of each image id in ids (N,), one sort instead of a scan per image."""
+    order = np.argsort(ids, kind="stable")
+    keys, starts = np.unique(ids[order], return_index=True)
+    return dict(zip(keys.tolist(), np.split(order, starts[1:])))
+
+
 def _patches(img: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """PATCH x PATCH pixel blocks of img around uv (N, 2; OpenCV pixel centres), edge pixels repeated where a block
     overhangs: (patches (N, P, P), origin (N, 2) int, inside (N,) = what the alignment reads lies in the image)."""
@@ -115,7 +122,7 @@ def refine_tracks(rec, image_dir: Path, *, window: int = LK_WINDOW, max_shift: f
     n = len(obs)
     if n == 0:
         return {"observations": 0, "refined": 0, "refined_frac": 0.0, "median_shift_px": 0.0, "wall_s": 0.0}
-    images = {iid: rec.images[iid] for iid in np.unique(obs[:, [0, 2]])}
+    images = {iid: rec.images[iid] for iid in np.unique(obs[:, [0, 2]]).tolist()}
     ref_xy = np.empty((n, 2))
     xy = np.empty((n, 2))
     ref_blk = np.empty((n, PATCH, PATCH), np.uint8)
@@ -123,16 +130,16 @@ def refine_tracks(rec, image_dir: Path, *, window: int = LK_WINDOW, max_shift: f
     ref_o = np.empty((n, 2), np.int64)
     tgt_o = np.empty((n, 2), np.int64)
     inside = np.ones(n, bool)
-    as_ref = {iid: np.flatnonzero(obs[:, 0] == iid) for iid in images}
-    as_tgt = {iid: np.flatnonzero(obs[:, 2] == iid) for iid in images}
+    none = np.zeros(0, np.int64)
+    as_ref, as_tgt = _rows_by_image(obs[:, 0]), _rows_by_image(obs[:, 2])
     # one pass over the images: each one read once, its blocks cut for every observation it serves
     for iid, im in images.items():
         img = cv2.imread(str(image_dir / im.name), cv2.IMREAD_GRAYSCALE)
         if img is None:
             raise StageError(f"{image_dir / im.name} is not readable: re-run `interreal frames`")
         pts = im.points2D
-        for rows, col, blk, org, out in ((as_ref[iid], 1, ref_blk, ref_o, ref_xy),
-                                         (as_tgt[iid], 3, tgt_blk, tgt_o, xy)):
+        for rows, col, blk, org, out in ((as_ref.get(iid, none), 1, ref_blk, ref_o, ref_xy),
+                                         (as_tgt.get(iid, none), 3, tgt_blk, tgt_o, xy)):
             if rows.size:
                 out[rows] = [pts[int(k)].xy for k in obs[rows, col]]
                 blk[rows], org[rows], ok = _patches(img, out[rows] - 0.5)
@@ -152,7 +159,8 @@ def refine_tracks(rec, image_dir: Path, *, window: int = LK_WINDOW, max_shift: f
     ok &= np.isfinite(new).all(1) & (shift <= max_shift) & (resid <= max_residual)
     for iid, im in images.items():
         pts = im.points2D
-        for k in as_tgt[iid][ok[as_tgt[iid]]]:
+        rows = as_tgt.get(iid, none)
+        for k in rows[ok[rows]]:
             pts[int(obs[k, 3])].xy = new[k]
     return {"observations": n, "refined": int(ok.sum()), "refined_frac": round(float(ok.mean()), 4),
             "median_shift_px": round(float(np.median(shift[ok])), 4) if ok.any() else 0.0,

@@ -260,13 +260,11 @@ class Rung:
 
 
 def extract(pc, db: Path, image_dir: Path, names: list[str], mask_dir: Path | None, cfg: SfMConfig,
-            log: NativeLog | None = None, chunk: int = 16) -> None:
+            octave: int, fine: set[int], log: NativeLog | None = None, chunk: int = 16) -> None:
     """SIFT into a fresh database, in chunks (for the progress bar); every chunk reuses the one shared camera.
-    Frames of `fine_frames` get the first octave `resolve_octave` chose, the others octave 0."""
+    Frames at the positions `fine` (from `fine_frames`) get the first octave `octave`, the others octave 0."""
     ext = pc.FeatureExtractionOptions(num_threads=cfg.num_threads, use_gpu=False, max_image_size=cfg.sfm_long_side)
     ext.sift.max_num_features = cfg.max_features
-    octave = resolve_octave(cfg, image_dir / names[0])
-    fine = set(fine_frames(cfg, len(names), octave, max(_image_hw(image_dir / names[0]))))
     groups = [(octave, [n for i, n in enumerate(names) if i in fine]),
               (0, [n for i, n in enumerate(names) if i not in fine])]
     if db.exists():
@@ -294,28 +292,31 @@ def extract(pc, db: Path, image_dir: Path, names: list[str], mask_dir: Path | No
             raise StageError(f"feature extraction made {d.num_cameras()} cameras, expected one shared camera")
 
 
+def _long_dense(cfg: SfMConfig, n: int, long_side: int) -> bool:
+    """A sequential capture of KEY_STRIDE_MIN frames or more, of FINE_MIN_SIDE px or more: where the auto rules
+    of `fine_frames` and `use_track_refinement` were measured."""
+    return n >= KEY_STRIDE_MIN and long_side >= FINE_MIN_SIDE and cfg.matcher != "exhaustive"
+
+
 def fine_frames(cfg: SfMConfig, n: int, octave: int, long_side: int) -> list[int]:
     """Positions of the frames that get SIFT's upsampled octave (octave -1): every `fine_octave_stride`-th frame
-    (auto: every 3rd of a sequential capture of KEY_STRIDE_MIN frames or more at FINE_MIN_SIDE px or more, else
-    all); all frames when the octave is not -1 (nothing to save)."""
-    auto = n >= KEY_STRIDE_MIN and long_side >= FINE_MIN_SIDE and cfg.matcher != "exhaustive"
-    stride = cfg.fine_octave_stride or (3 if auto else 1)
+    (auto: every 3rd of a `_long_dense` capture, else all); all frames when the octave is not -1 (nothing to
+    save)."""
+    stride = cfg.fine_octave_stride or (3 if _long_dense(cfg, n, long_side) else 1)
     return key_positions(n, stride if octave < 0 else 1)
 
 
-def use_track_refinement(cfg: SfMConfig, n: int, sample: Path) -> bool:
+def use_track_refinement(cfg: SfMConfig, n: int, long_side: int) -> bool:
     """Whether to align each track's keypoints to one view before the final BA (`keypoints.refine_tracks`).
 
-    auto = where it was measured to help: sequential captures of KEY_STRIDE_MIN frames or more that SIFT sees at
-    native size, FINE_MIN_SIDE px or more (simulator, 300 frames at 640x480: rotation error 0.065 -> 0.060 deg and
+    auto = where it was measured to help: `_long_dense` captures that SIFT sees at native size (simulator, 300 frames at 640x480: rotation error 0.065 -> 0.060 deg and
     centres 0.048 -> 0.042 % on one model, 0.056 -> 0.046 deg and 0.037 -> 0.033 % on another). Elsewhere the
     translation-only alignment meets larger changes of view per pixel and did not help: 300 frames at 320x240
     0.115 -> 0.118 deg, centres 0.104 -> 0.116 %; 90 frames at 320x240 0.163 -> 0.143 deg but centres 0.079 ->
     0.104 %; fox (50 photos, SIFT at 1000 of 1600 px) unchanged (0.0925 -> 0.0922 deg, 0.032 -> 0.033 %)."""
     if cfg.refine_tracks in ("on", "off"):
         return cfg.refine_tracks == "on"
-    side = max(_image_hw(sample))
-    return n >= KEY_STRIDE_MIN and side <= cfg.sfm_long_side and side >= FINE_MIN_SIDE and cfg.matcher != "exhaustive"
+    return _long_dense(cfg, n, long_side) and long_side <= cfg.sfm_long_side
 
 
 def resolve_octave(cfg: SfMConfig, sample: Path) -> int:
@@ -720,10 +721,10 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
         if cfg.use_masks and mask_src == "none":
             rep.warn("no object masks (DS/masks or DS/sfm_masks): moving parts may corrupt poses; run "
                      "`interreal masks DS --keyframes DIR` first", cause="no-masks")
-        fine = fine_frames(cfg, len(images), resolve_octave(cfg, images[0]), max(_image_hw(images[0])))
+        octave, side = resolve_octave(cfg, images[0]), max(_image_hw(images[0]))
+        fine = fine_frames(cfg, len(images), octave, side)
         fp_feat = fingerprint("features", _files_fp(images), _files_fp(mask_files) if mask_files else None,
-                              cfg.sfm_long_side, cfg.max_features, resolve_octave(cfg, images[0]), cfg.camera_model,
-                              fine)
+                              cfg.sfm_long_side, cfg.max_features, octave, cfg.camera_model, fine)
         db = work / "database.db"
         with rep.step("features") as st:
             if state.get("features") == fp_feat and db.exists():
@@ -731,7 +732,7 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
             else:
                 state = {"features": fp_feat}
                 with NativeLog(work / "colmap.log", cfg.verbose) as log:
-                    extract(pc, db, ds / IMAGES_DIR, names, mask_dir, cfg, log)
+                    extract(pc, db, ds / IMAGES_DIR, names, mask_dir, cfg, octave, set(fine), log)
                 atomic.write_json(state_path, state)
                 st["reused"] = False
             with pc.Database.open(str(db)) as d:
@@ -744,7 +745,8 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
             rep.steps["reuse"] = {"wall_s": 0.0, "reused": True}
             rec = pc.Reconstruction(str(final))
         else:
-            rec = _run_ladder(pc, ds, work, db, names, rungs, fp_feat, state, state_path, cfg, rep)
+            rec = _run_ladder(pc, ds, work, db, names, rungs, fp_feat, state, state_path, cfg, rep,
+                              refine=use_track_refinement(cfg, len(images), side))
         total = len(images)
         stats = model_stats(rec)
         frac = stats["registered"] / total
@@ -792,8 +794,9 @@ def _check_sizes(images: list[Path]) -> None:
                          f"(e.g. {list(sizes.values())[:2]}); re-run `interreal frames`")
 
 
-def _run_ladder(pc, ds, work, db, names, rungs, fp_feat, state, state_path, cfg, rep):
-    """Match + map rung after rung until >= retry_below registered; keep the best model; write colmap/sparse/."""
+def _run_ladder(pc, ds, work, db, names, rungs, fp_feat, state, state_path, cfg, rep, refine: bool):
+    """Match + map rung after rung until >= retry_below registered; keep the best model (its tracks aligned when
+    `refine`, then the final BA); write colmap/sparse/."""
     n = len(names)
     best = None  # (registered, -reproj, rung, rec, models)
     tried = []
@@ -849,7 +852,6 @@ def _run_ladder(pc, ds, work, db, names, rungs, fp_feat, state, state_path, cfg,
                          f"({', '.join(t['rung'] for t in tried)}): the frames share too few features; film slower, "
                          "with more texture and overlap")
     _, rung, rec, models, sizes = best
-    refine = use_track_refinement(cfg, n, ds / IMAGES_DIR / names[0])
     rep.figures["track_refinement"] = refine
     if refine:
         with rep.step("refine_tracks") as st, NativeLog(work / "colmap.log", cfg.verbose) as log:

@@ -25,7 +25,7 @@ from . import atomic
 from .conventions import IMAGES_DIR, frame_name
 from .errors import InputError
 from .ingest import Source, open_source
-from .report import StageReport
+from .report import StageReport, files_fingerprint, finished_with, fingerprint
 
 DEFAULT_VIDEO_TARGET = 300  # ns-process-data's default, so datasets are comparable
 
@@ -142,12 +142,34 @@ def _is_folder_source(source: Source) -> bool:
     return source.info.kind in ("images", "raw")
 
 
+def _resume_key(source: Path, settings: dict) -> str | None:
+    """Source files (name, size, time) + settings; None when the source cannot be listed (the run then fails
+    with its own clear error)."""
+    try:
+        files = sorted(p for p in source.iterdir() if p.is_file()) if source.is_dir() else [source]
+        return fingerprint("frames", files_fingerprint(files), settings)
+    except OSError:
+        return None
+
+
+def _finished_images(ds: Path, key: str) -> list[Path] | None:
+    """The images of a finished run with this resume key, when every one of them is still there."""
+    rep = finished_with(ds, "frames", key)
+    if rep is None:
+        return None
+    paths = [ds / IMAGES_DIR / (frame_name(int(i)) + ".png") for i in rep["figures"].get("selected_indices", [])]
+    present = {p.name for p in (ds / IMAGES_DIR).glob("*.png")} if (ds / IMAGES_DIR).is_dir() else set()
+    return paths if paths and present == {p.name for p in paths} else None
+
+
 def extract_frames(source: str | Path, ds: str | Path, *, target: int | None = None, every: int | None = None,
                    long_side: int = 1600, keep: Iterable[int] = (), report: bool = True) -> list[Path]:
     """Select frames from a video / image folder / RAW folder and write DS/images/frame_<index>.png.
 
     The new images/ folder is built beside the old one and swapped in at the end, so a failed run leaves the
-    dataset as it was. Returns the written image paths in index order.
+    dataset as it was. A finished run from the same source files and settings is reused (its images keep their
+    modification times, so the masks and poses stages downstream are reused too). Returns the image paths in
+    index order.
     """
     ds = Path(ds)
     if target is not None and target < 3:
@@ -157,7 +179,15 @@ def extract_frames(source: str | Path, ds: str | Path, *, target: int | None = N
     keep = sorted(set(int(k) for k in keep))
     settings = {"target": target, "every": every, "long_side": long_side, "keep": keep}
     ds.mkdir(parents=True, exist_ok=True)
+    key = _resume_key(Path(source), settings)
+    if report and key is not None:
+        done = _finished_images(ds, key)
+        if done is not None:
+            print(f"frames: {len(done)} frames in {ds / IMAGES_DIR} are up to date (same source and settings)")
+            return done
     rep = StageReport(ds, "frames", inputs={"source": str(source)}, settings=settings) if report else None
+    if rep is not None and key is not None:
+        rep.data["resume_key"] = key
     ctx = rep if rep is not None else _Null()
     with ctx:
         t0 = time.perf_counter()

@@ -50,6 +50,19 @@ def fingerprint(*parts: Any) -> str:
     return hashlib.sha1(blob).hexdigest()[:16]
 
 
+def files_fingerprint(paths: list[Path]) -> str:
+    """Files by name, size and modification time: a rewritten file counts as changed, an untouched one does not."""
+    return fingerprint([(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in paths])
+
+
+def finished_with(root: str | Path, stage: str, resume_key: str) -> dict[str, Any] | None:
+    """The stage's report when it finished ("ok") from the same inputs and settings (`resume_key`), else None."""
+    rep = read_report(root, stage)
+    if rep is None or rep.get("status") != "ok" or rep.get("resume_key") != resume_key:
+        return None
+    return rep
+
+
 class StageReport:
     """Collects what a stage did; use as a context manager around the stage's work.
 

@@ -45,7 +45,7 @@ from .conventions import (
 from .dataset import Frame, Intrinsics, list_images, write_transforms
 from .errors import InputError, StageError
 from .keypoints import refine_tracks
-from .report import StageReport, fingerprint, warning_lines
+from .report import StageReport, files_fingerprint, fingerprint, warning_lines
 
 COLMAP_DIR = "colmap"
 KEY_STRIDE_MIN = 150  # frames from which a sequential capture gets SIFT's upsampled octave on every 3rd frame only
@@ -142,10 +142,6 @@ class NativeLog:
         from tqdm import tqdm
 
         return tqdm(total=total, desc=desc, file=self.term, leave=False, unit="pair" if "match" in desc else "img")
-
-
-def _files_fp(paths: list[Path]) -> str:
-    return fingerprint([(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in paths])
 
 
 def _load_state(path: Path) -> dict:
@@ -723,7 +719,7 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
                      "`interreal masks DS --keyframes DIR` first", cause="no-masks")
         octave, side = resolve_octave(cfg, images[0]), max(_image_hw(images[0]))
         fine = fine_frames(cfg, len(images), octave, side)
-        fp_feat = fingerprint("features", _files_fp(images), _files_fp(mask_files) if mask_files else None,
+        fp_feat = fingerprint("features", files_fingerprint(images), files_fingerprint(mask_files) if mask_files else None,
                               cfg.sfm_long_side, cfg.max_features, octave, cfg.camera_model, fine)
         db = work / "database.db"
         with rep.step("features") as st:

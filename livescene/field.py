@@ -18,7 +18,7 @@ from torch import nn
 from .config import ModelConfig
 from .errors import LiveSceneError
 
-BACKGROUND_K = 0.0  # interaction value of samples that belong to no object
+BACKGROUND_K = -1.0  # k of samples that belong to no object: not a state; KPlanes reads it from a node of its own
 
 
 DENSITY_LOGIT_MAX = 40.0  # exp(40) ~ 2e17: opaque at any step size, and far from float32's overflow at 88.7
@@ -74,28 +74,46 @@ def spherical_harmonics(dirs: torch.Tensor, bands: int) -> torch.Tensor:
 
 class KPlanes(nn.Module):
     """Multi-scale planes xy, xz, yz (and xk, yk, zk when `k_resolution` > 0), Hadamard product per scale,
-    concatenated across scales. The three planes of a group are stacked so one grid_sample call reads them."""
+    concatenated across scales. The three planes of a group are stacked so one grid_sample call reads them.
+
+    With `background_slice` the k axis has one node more, read only by background samples (k < 0): static space
+    then never shares features with an object's state 0, and no interpolation crosses from states into it."""
 
     def __init__(self, resolutions: list[int], k_resolution: int, features: int,
-                 init: tuple[float, float] = (0.1, 0.5)):
+                 init: tuple[float, float] = (0.1, 0.5), background_slice: bool = False):
         super().__init__()
         self.features = features
+        self.k_resolution = k_resolution
+        self.background_slice = background_slice and k_resolution > 0
+        rows = k_resolution + int(self.background_slice)
         self.spatial = nn.ParameterList(
             [nn.Parameter(torch.empty(3, features, r, r).uniform_(*init)) for r in resolutions])
         self.kplanes = nn.ParameterList(
-            [nn.Parameter(torch.ones(3, features, k_resolution, r)) for r in resolutions] if k_resolution > 0 else [])
+            [nn.Parameter(torch.ones(3, features, rows, r)) for r in resolutions] if k_resolution > 0 else [])
 
     @property
     def out_dim(self) -> int:
         return self.features * len(self.spatial)
 
+    def state_rows(self, plane: torch.Tensor) -> torch.Tensor:
+        """The rows of a k-plane (3, C, rows, R) that states read (the background node left out)."""
+        return plane[:, :, : self.k_resolution]
+
+    def k_coordinate(self, k: torch.Tensor) -> torch.Tensor:
+        """k (N,): a state in [0, 1], or < 0 for background -> grid coordinate in [-1, 1] on the k axis."""
+        if not self.background_slice:
+            return k.clamp(0, 1) * 2 - 1
+        top = 1 - 2 / self.k_resolution  # state 1 sits on the last state node, one node below the background's
+        return torch.where(k < 0, torch.ones_like(k), -1 + k.clamp(0, 1) * (top + 1))
+
     def forward(self, xyz: torch.Tensor, k: torch.Tensor | None = None) -> torch.Tensor:
-        """xyz (N, 3) in [-1, 1]; k (N,) in [-1, 1] or None -> (N, features * scales)."""
+        """xyz (N, 3) in [-1, 1]; k (N,) states in [0, 1] (< 0: background) or None -> (N, features * scales)."""
         n = xyz.shape[0]
         x, y, z = xyz.unbind(-1)
         gs = torch.stack([torch.stack([x, y], -1), torch.stack([x, z], -1), torch.stack([y, z], -1)]).view(3, 1, n, 2)
         gk = None
         if k is not None and len(self.kplanes):
+            k = self.k_coordinate(k)
             gk = torch.stack([torch.stack([x, k], -1), torch.stack([y, k], -1),
                               torch.stack([z, k], -1)]).view(3, 1, n, 2)
         outs = []
@@ -115,12 +133,13 @@ class RadianceField(nn.Module):
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         self.bands = cfg.sh_degree
-        self.grid = KPlanes([cfg.resolution * s for s in cfg.scales], cfg.k_resolution, cfg.features)
+        self.grid = KPlanes([cfg.resolution * s for s in cfg.scales], cfg.k_resolution, cfg.features,
+                            background_slice=cfg.background_k == "slice")
         self.sigma_net = mlp(self.grid.out_dim, cfg.hidden, 1 + cfg.geo_features)
         self.color_net = mlp(cfg.sh_degree ** 2 + cfg.geo_features, cfg.hidden, 3, layers=2)
 
     def forward(self, xyz: torch.Tensor, k: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        h = self.sigma_net(self.grid(xyz, k * 2 - 1))
+        h = self.sigma_net(self.grid(xyz, k))
         sigma = trunc_exp(h[:, 0] - 1.0)
         rgb = torch.sigmoid(self.color_net(torch.cat([spherical_harmonics(dirs, self.bands), h[:, 1:]], -1)))
         return sigma, rgb
@@ -129,13 +148,13 @@ class RadianceField(nn.Module):
 class ProposalField(nn.Module):
     """A small single-scale 4-D K-planes density used to place the next level's samples."""
 
-    def __init__(self, resolution: int, k_resolution: int, features: int, hidden: int):
+    def __init__(self, resolution: int, k_resolution: int, features: int, hidden: int, background_slice: bool):
         super().__init__()
-        self.grid = KPlanes([resolution], k_resolution, features, init=(0.1, 0.15))
+        self.grid = KPlanes([resolution], k_resolution, features, init=(0.1, 0.15), background_slice=background_slice)
         self.net = mlp(self.grid.out_dim, hidden, 1)
 
     def forward(self, xyz: torch.Tensor, k: torch.Tensor | None) -> torch.Tensor:
-        return trunc_exp(self.net(self.grid(xyz, None if k is None else k * 2 - 1))[:, 0] - 1.0)
+        return trunc_exp(self.net(self.grid(xyz, k))[:, 0] - 1.0)
 
 
 class ProbabilityField(nn.Module):
@@ -193,12 +212,17 @@ class LiveSceneModel(nn.Module):
         if n_objects > cfg.max_objects:
             raise LiveSceneError(f"the scene has {n_objects} objects but the model has {cfg.max_objects} slots: "
                              f"raise model.max_objects (--set model.max_objects={n_objects})")
+        if cfg.background_k not in ("slice", "zero"):
+            raise LiveSceneError(f"model.background_k must be 'slice' or 'zero', not {cfg.background_k!r}")
+        if cfg.mask_render not in ("probs", "logits"):
+            raise LiveSceneError(f"model.mask_render must be 'probs' or 'logits', not {cfg.mask_render!r}")
         self.cfg = cfg
         self.n_objects = n_objects
+        self.background_k = BACKGROUND_K if cfg.background_k == "slice" else 0.0
         self.field = RadianceField(cfg)
         self.proposals = nn.ModuleList(
-            [ProposalField(r, cfg.k_resolution if cfg.proposal_k else 0, cfg.proposal_features, cfg.proposal_hidden)
-             for r in cfg.proposal_resolutions])
+            [ProposalField(r, cfg.k_resolution if cfg.proposal_k else 0, cfg.proposal_features, cfg.proposal_hidden,
+                           cfg.background_k == "slice") for r in cfg.proposal_resolutions])
         self.prob = ProbabilityField(cfg)
         self.variable = FrameVariable(cfg)
         self.bg_color = nn.Parameter(torch.full((3,), 0.5), requires_grad=cfg.background == "learned")
@@ -235,7 +259,7 @@ class LiveSceneModel(nn.Module):
             if self.n_objects == 0:
                 keep = torch.zeros_like(keep)
         k = values.gather(1, idx.unsqueeze(1))[:, 0]
-        return torch.where(keep, k, torch.full_like(k, BACKGROUND_K))
+        return torch.where(keep, k, torch.full_like(k, self.background_k))
 
     def param_count(self) -> int:
         return sum(p.numel() for p in self.parameters() if p.requires_grad)

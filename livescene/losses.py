@@ -70,7 +70,8 @@ def plane_tv(grid: KPlanes) -> torch.Tensor:
 def k_smoothness(grid: KPlanes) -> torch.Tensor:
     """Laplacian (second difference) along the interaction axis of the k-planes."""
     total = 0.0
-    for p in grid.kplanes:
+    for plane in grid.kplanes:
+        p = grid.state_rows(plane)  # the background node is no state: no smoothness across into it
         if p.shape[2] >= 3:
             total = total + ((p[:, :, 2:] - 2 * p[:, :, 1:-1] + p[:, :, :-2]) ** 2).mean()
     return total / max(len(grid.kplanes), 1) if len(grid.kplanes) else torch.zeros(())

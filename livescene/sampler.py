@@ -84,6 +84,18 @@ def anneal_power(step: int, cfg: SamplerConfig) -> float:
     return (b * frac) / ((b - 1) * frac + 1)
 
 
+def render_logits(logits: torch.Tensor, weights: torch.Tensor, slot_mask: torch.Tensor, mode: str) -> torch.Tensor:
+    """Per-pixel object logits (R, C) from per-sample logits (R, S, C) and detached weights (R, S).
+
+    "probs": log of the weighted per-sample probabilities, the light that leaves the box counted as background,
+    so the mask losses reach the very samples whose probabilities pick k. "logits": weighted logits (official)."""
+    if mode == "logits":
+        return (weights[..., None] * logits).sum(1).masked_fill(~slot_mask, -1e4)
+    p = (weights[..., None] * torch.softmax(logits, -1)).sum(1)
+    p = torch.cat([p[:, :-1], p[:, -1:] + (1 - weights.sum(1, keepdim=True)).clamp(min=0)], -1)
+    return torch.log(p.clamp(min=1e-6)).masked_fill(~slot_mask, -1e4)
+
+
 def render_rays(model: LiveSceneModel, origins: torch.Tensor, dirs: torch.Tensor, values: torch.Tensor,
                 box: tuple[torch.Tensor, torch.Tensor], cfg: SamplerConfig, *, step: int = 10 ** 9,
                 gen: torch.Generator | None = None, with_logits: bool = True) -> RenderOut:
@@ -134,6 +146,6 @@ def render_rays(model: LiveSceneModel, origins: torch.Tensor, dirs: torch.Tensor
     depth = (w * mid).sum(-1) + (1 - acc) * far
     rendered_logits = None
     if logits is not None:
-        rendered_logits = (w.detach()[..., None] * logits.view(r, s, -1)).sum(1).masked_fill(~model.slot_mask, -1e4)
+        rendered_logits = render_logits(logits.view(r, s, -1), w.detach(), model.slot_mask, model.cfg.mask_render)
     return RenderOut(rgb=color, depth=depth, acc=acc, logits=rendered_logits, weights=w, edges=edges,
                      proposals=proposals, near=near, far=far)

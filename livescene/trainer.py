@@ -92,13 +92,21 @@ def _checkpoint_path(run_dir: Path, which: str | int | None) -> Path:
     return path
 
 
+def checkpoint_config(ckpt: dict) -> TrainConfig:
+    """The config a checkpoint was trained with; runs from before the background slice read k = 0 there."""
+    cfg = from_dict(ckpt["config"])
+    if "background_k" not in ckpt["config"].get("model", {}):
+        cfg.model.background_k = "zero"
+    return cfg
+
+
 def load_run(run_dir: str | Path, device: str = "auto", checkpoint: str | int | None = None,
              dataset: str | Path | None = None) -> Run:
     """Reopen a run: its model at the latest (or given) checkpoint, its dataset views and config."""
     run_dir = Path(run_dir)
     dev = select_device(device)
     ckpt = torch.load(_checkpoint_path(run_dir, checkpoint), map_location="cpu", weights_only=False)
-    cfg = from_dict(ckpt["config"])
+    cfg = checkpoint_config(ckpt)
     ds_path = Path(dataset) if dataset else Path(ckpt["meta"]["dataset"])
     if not ds_path.exists():
         raise LiveSceneError(f"the run's dataset {ds_path} is gone: pass dataset=... (--dataset) to point at it")
@@ -145,7 +153,7 @@ class Trainer:
         if resume:
             resume_ckpt = torch.load(_checkpoint_path(self.run_dir, None), map_location="cpu", weights_only=False)
             steps = cfg.steps
-            cfg = from_dict(resume_ckpt["config"])
+            cfg = checkpoint_config(resume_ckpt)
             cfg.steps = max(steps, cfg.steps) if steps else cfg.steps
             dataset = resume_ckpt["meta"]["dataset"]
         elif (self.run_dir / "latest.pt").exists():

@@ -3,7 +3,8 @@
 Runs (each a flat record: data, variant, minutes, steps, psnr, ssim, state_mae, novel_state_psnr, mask_iou,
 params, label_fraction):
   main       the cpu preset for 15 minutes (--quick: 2), full held-out evaluation (every 8th frame)
-  reject     probability rejection s = 0 (official) against ours, equal time
+  reject     probability rejection s = 0 (official) against ours (s = 0.5), and ours with the official code's
+             background k = 0 instead of a background slice of its own, equal time
   labels     state MAE against the fraction of labelled frames (1, 2, 5, 10, 25 %)
   capacity   held-out PSNR against parameter count (capacity x0.25 .. x2; x1 = the auto size)
   objects    parameter count against the number of objects (1..6; no training needed)
@@ -161,7 +162,7 @@ def charts(path: Path, runs: list[dict]) -> Path:
     fig, axes = plt.subplots(2, 2, figsize=(11, 8), dpi=100)
     ax = axes[0, 0]
     for r in runs:
-        if r.get("curve") and r["variant"] in ("main", "reject s=0", "reject s=0.5"):
+        if r.get("curve") and r["variant"] in ("main", "reject s=0", "reject s=0.5", "reject s=0.5 bg k=0"):
             xs, ys = zip(*r["curve"])
             ax.plot(xs, ys, "-o", ms=3, label=f"{r['variant']} (quick eval, 160 px)")
             if r.get("psnr") is not None:
@@ -251,10 +252,11 @@ def main() -> int:
     if "main" in only:
         record("main", train_and_eval(ds, cap, args.out / "runs" / "main", minutes, box, device, eval_frames))
     if "reject" in only:
-        for s in (0.0, 0.5):
-            record(f"reject s={s:g}", train_and_eval(ds, cap, args.out / "runs" / f"reject_{s:g}", sweep_minutes * 1.5,
-                                                     box, device, min(eval_frames or 4, 4),
-                                                     [*args.sweep_set, f"model.reject_threshold={s}"]))
+        for s, bg in ((0.0, "slice"), (0.5, "slice"), (0.5, "zero")):
+            name = f"reject s={s:g}" + (" bg k=0" if bg == "zero" else "")
+            record(name, train_and_eval(ds, cap, args.out / "runs" / name.replace(" ", "_").replace("=", ""),
+                                        sweep_minutes * 1.5, box, device, min(eval_frames or 4, 4),
+                                        [*args.sweep_set, f"model.reject_threshold={s}", f"model.background_k={bg}"]))
     if "labels" in only:
         for frac in (0.01, 0.02, 0.05, 0.10, 0.25):
             dsl = relabel(ds, cap, frac, args.out)

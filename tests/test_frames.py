@@ -102,3 +102,15 @@ def test_cli_help_has_examples(capsys):
     with pytest.raises(SystemExit):
         cli.main(["frames", "--help"])
     assert "examples:" in capsys.readouterr().out
+
+
+def test_unchanged_rerun_reuses_the_frames(tmp_path, capsys):
+    video = write_video(tmp_path / "v.mp4", [textured(i) for i in range(12)])
+    ds = tmp_path / "ds"
+    first = extract_frames(video, ds, every=2)
+    stamps = [p.stat().st_mtime_ns for p in first]
+    assert extract_frames(video, ds, every=2) == first and [p.stat().st_mtime_ns for p in first] == stamps
+    assert "up to date" in capsys.readouterr().out
+    first[0].unlink()  # a missing image: the stage runs again
+    assert extract_frames(video, ds, every=2) == first and first[0].exists()
+    assert len(extract_frames(video, ds, every=3)) != len(first)  # another setting runs again

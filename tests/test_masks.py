@@ -474,3 +474,25 @@ def test_cli_prints_the_reports_warnings(tmp_path, capsys):
     assert main(["masks", str(ds), "--keyframes", str(keys), "--quiet", "--preview", "none"]) == 0
     out = capsys.readouterr().out
     assert "warning (masks): masks may be unreliable: the view moves too far between keyframes" in out
+
+
+def test_unchanged_rerun_reuses_the_masks(tmp_path):
+    """Same frames, keyframes and settings: nothing is rewritten (so SfM's features stay valid); a changed
+    keyframe or setting runs the stage again."""
+    import os
+
+    images, truths = toy_sequence(n=8)
+    ds = make_ds(tmp_path, images)
+    write_keys(tmp_path / "keys", truths, [0, 7], ["red disk", "blue square"])
+    fig = propagate(ds, tmp_path / "keys", preview="none", progress=False)
+    files = sorted((ds / "masks").glob("*.npy")) + sorted((ds / "sfm_masks").glob("*.png"))
+    stamps = [p.stat().st_mtime_ns for p in files]
+    again = propagate(ds, tmp_path / "keys", preview="none", progress=False)
+    assert again == fig and [p.stat().st_mtime_ns for p in files] == stamps
+    propagate(ds, tmp_path / "keys", preview="none", suggest=2, progress=False)  # another setting: runs
+    assert [p.stat().st_mtime_ns for p in files] != stamps
+    stamps = [p.stat().st_mtime_ns for p in files]
+    key = sorted((tmp_path / "keys").iterdir())[0]
+    os.utime(key, ns=(key.stat().st_atime_ns, key.stat().st_mtime_ns + 10 ** 9))  # keyframe edited
+    propagate(ds, tmp_path / "keys", preview="none", suggest=2, progress=False)
+    assert [p.stat().st_mtime_ns for p in files] != stamps

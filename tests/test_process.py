@@ -95,3 +95,10 @@ def test_process_video_end_to_end(tmp_path, capsys):
     for stage in ("frames", "poses", "process"):
         assert json.loads((ds / "reports" / f"{stage}.json").read_text())["status"] == "ok"
     assert (ds / "key_frame_value.yaml").exists()
+    # an unchanged re-run reuses every finished step: the images are not rewritten, SfM reuses its features
+    stamps = {p.name: p.stat().st_mtime_ns for p in (ds / "images").glob("*.png")}
+    assert cli.main(["process", str(cap / "video.mp4"), str(ds), "--target", "12", "--labels", str(labels)]) == 0
+    assert "up to date" in capsys.readouterr().out
+    assert {p.name: p.stat().st_mtime_ns for p in (ds / "images").glob("*.png")} == stamps
+    steps = json.loads((ds / "reports" / "poses.json").read_text())["steps"]
+    assert steps.get("reuse", {}).get("reused") or steps["features"]["reused"], steps

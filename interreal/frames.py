@@ -25,7 +25,7 @@ from . import atomic
 from .conventions import IMAGES_DIR, frame_name
 from .errors import InputError
 from .ingest import Source, open_source
-from .report import StageReport, files_fingerprint, finished_with, fingerprint
+from .report import StageReport, finished_with, fingerprint, tree_fingerprint
 
 DEFAULT_VIDEO_TARGET = 300  # ns-process-data's default, so datasets are comparable
 
@@ -142,16 +142,6 @@ def _is_folder_source(source: Source) -> bool:
     return source.info.kind in ("images", "raw")
 
 
-def _resume_key(source: Path, settings: dict) -> str | None:
-    """Source files (name, size, time) + settings; None when the source cannot be listed (the run then fails
-    with its own clear error)."""
-    try:
-        files = sorted(p for p in source.iterdir() if p.is_file()) if source.is_dir() else [source]
-        return fingerprint("frames", files_fingerprint(files), settings)
-    except OSError:
-        return None
-
-
 def _finished_images(ds: Path, key: str) -> list[Path] | None:
     """The images of a finished run with this resume key, when every one of them is still there."""
     rep = finished_with(ds, "frames", key)
@@ -179,15 +169,13 @@ def extract_frames(source: str | Path, ds: str | Path, *, target: int | None = N
     keep = sorted(set(int(k) for k in keep))
     settings = {"target": target, "every": every, "long_side": long_side, "keep": keep}
     ds.mkdir(parents=True, exist_ok=True)
-    key = _resume_key(Path(source), settings)
-    if report and key is not None:
-        done = _finished_images(ds, key)
-        if done is not None:
-            print(f"frames: {len(done)} frames in {ds / IMAGES_DIR} are up to date (same source and settings)")
-            return done
-    rep = StageReport(ds, "frames", inputs={"source": str(source)}, settings=settings) if report else None
-    if rep is not None and key is not None:
-        rep.data["resume_key"] = key
+    source_fp = tree_fingerprint(Path(source))
+    key = fingerprint("frames", source_fp, settings) if source_fp is not None else None
+    done = _finished_images(ds, key) if report and key is not None else None
+    if done is not None:
+        print(f"frames: {len(done)} frames in {ds / IMAGES_DIR} are up to date (same source and settings)")
+        return done
+    rep = StageReport(ds, "frames", inputs={"source": str(source)}, settings=settings, resume_key=key) if report else None
     ctx = rep if rep is not None else _Null()
     with ctx:
         t0 = time.perf_counter()

@@ -55,6 +55,15 @@ def files_fingerprint(paths: list[Path]) -> str:
     return fingerprint([(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in paths])
 
 
+def tree_fingerprint(path: Path) -> str | None:
+    """`files_fingerprint` of a folder's files, or of one file; None when it cannot be listed (the stage then
+    runs and fails with its own clear error)."""
+    try:
+        return files_fingerprint(sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path])
+    except OSError:
+        return None
+
+
 def finished_with(root: str | Path, stage: str, resume_key: str) -> dict[str, Any] | None:
     """The stage's report when it finished ("ok") from the same inputs and settings (`resume_key`), else None."""
     rep = read_report(root, stage)
@@ -73,7 +82,8 @@ class StageReport:
     ...     rep.warn("frames 120-160 did not register", cause="texture")
     """
 
-    def __init__(self, root: str | Path, stage: str, inputs: dict | None = None, settings: dict | None = None):
+    def __init__(self, root: str | Path, stage: str, inputs: dict | None = None, settings: dict | None = None,
+                 resume_key: str | None = None):
         self.root = Path(root)
         self.stage = stage
         self.data: dict[str, Any] = {
@@ -87,6 +97,8 @@ class StageReport:
             "warnings": [],
             "host": {"python": sys.version.split()[0], "platform": platform.platform()},
         }
+        if resume_key is not None:  # what `finished_with` compares a later run's inputs and settings against
+            self.data["resume_key"] = resume_key
         self._t0 = time.perf_counter()
 
     @property

@@ -15,7 +15,7 @@ from .. import atomic
 from ..conventions import IMAGES_DIR, FRAME_PREFIX, frame_id, frame_index, index_to_onehot, mask_file
 from ..dataset import list_images, read_image_rgb, read_mapping, write_mapping, write_mask
 from ..errors import InputError
-from ..report import StageReport, files_fingerprint, finished_with, fingerprint
+from ..report import StageReport, files_fingerprint, finished_with, fingerprint, tree_fingerprint
 from .appearance import AppearanceConfig
 from .confidence import frame_confidence, keyframe_reach, reach_suggestion, suggest_frames
 from .flow import FlowConfig
@@ -73,7 +73,10 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
     cfg = config or make_config(work_long_side, flow, preset, appearance, rigid, fusion, refine)
     images = dataset_frames(ds)
     fids = [frame_id(p) for p in images]
-    key = _resume_key(ds, images, Path(keyframes_dir), asdict(cfg), suggest, preview, sfm_dilate)
+    # the mapping file is left out of the key: the first run writes it, which would make every second run look changed
+    keys_fp = tree_fingerprint(Path(keyframes_dir))
+    key = None if keys_fp is None else fingerprint("masks", str(ds.resolve()), files_fingerprint(images), keys_fp,
+                                                    asdict(cfg), suggest, preview, sfm_dilate)
     done = finished_with(ds, "masks", key) if key is not None else None
     if done is not None and all(mask_file(ds, f).exists() for f in fids) \
             and all((ds / SFM_MASKS_DIR / f"{p.name}.png").exists() for p in images):
@@ -105,9 +108,7 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
     inputs = {"keyframes_dir": str(keyframes_dir), "keyframes": kf.sources, "frames": len(fids),
               "size": list(size), "objects": kf.names}
     settings = {**asdict(cfg), "suggest": suggest, "preview": preview}
-    with StageReport(ds, "masks", inputs=inputs, settings=settings) as rep:
-        if key is not None:
-            rep.data["resume_key"] = key
+    with StageReport(ds, "masks", inputs=inputs, settings=settings, resume_key=key) as rep:
         rep.steps["keyframes"] = {"wall_s": round(t_kf, 4)}
         if not ds_mapping:
             write_mapping(ds, dict(enumerate(kf.names)))
@@ -216,16 +217,6 @@ def _ref_area(ref: dict[int, np.ndarray], pos: int) -> np.ndarray:
         return ref[a]
     w = (pos - a) / (b - a)
     return (1 - w) * ref[a] + w * ref[b]
-
-
-def _resume_key(ds: Path, images: list[Path], keyframes_dir: Path, *settings: Any) -> str | None:
-    """Frames, keyframe files (name, size, time) and settings. The mapping file is left out: the first run writes
-    it from the keyframes, which would make every second run look changed."""
-    try:
-        keys = sorted(p for p in keyframes_dir.iterdir() if p.is_file()) if keyframes_dir.is_dir() else [keyframes_dir]
-        return fingerprint("masks", str(ds.resolve()), files_fingerprint(images), files_fingerprint(keys), settings)
-    except OSError:
-        return None
 
 
 def _write_sfm_mask(ds: Path, image_name: str, labels: np.ndarray, dilate: int) -> None:

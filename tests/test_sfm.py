@@ -164,6 +164,35 @@ def test_track_refinement_pulls_perturbed_keypoints_back(posed):
     assert np.median(back) < 0.1 < np.median(np.linalg.norm(noise, axis=1)), np.median(back)
 
 
+def test_robust_final_ba_resists_bad_observations(posed, capture):
+    """The final BA's soft-L1 loss (the default) keeps poses where a few observations are 3-6 px off; the squared
+    loss lets them pull every camera."""
+    import pycolmap
+
+    from interreal.conventions import opencv_to_opengl
+    from interreal.sfm import SfMConfig, rec_poses, refine_intrinsics
+
+    ds, _ = posed
+    truth = gt(capture)
+    rec = pycolmap.Reconstruction(str(ds / "colmap" / "sparse" / "0"))
+    rng = np.random.default_rng(0)
+    for image in rec.images.values():
+        for p in image.points2D:
+            if p.has_point3D() and rng.random() < 0.08:
+                p.xy = p.xy + rng.uniform(3.0, 6.0) * np.array([1.0, 0.0]) * rng.choice([-1, 1])
+
+    def rot_err(loss: str) -> float:
+        r = pycolmap.Reconstruction(rec)
+        refine_intrinsics(pycolmap, r, SfMConfig(ba_loss=loss), "fixed")
+        names, c2w, _ = rec_poses(r)
+        ids = [int(Path(n).stem.split("_")[-1]) for n in names]
+        return compare_poses(opencv_to_opengl(c2w), np.stack([truth[i] for i in ids]))["rot_err_deg_median"]
+
+    robust, squared = rot_err("soft_l1"), rot_err("trivial")
+    assert SfMConfig().ba_loss == "soft_l1"
+    assert robust < 0.8 * squared, (robust, squared)  # measured 0.44 vs 0.68 deg (seeds 1, 2: 0.45 / 0.60, 0.33 / 0.48)
+
+
 @pytest.mark.slow
 def test_rerun_reuses_the_finished_model(posed):
     ds, fig = posed
@@ -193,7 +222,7 @@ def test_import_transforms_and_colmap_model(posed, tmp_path):
 # ------------------------------------------------------------------------------------------------ failures
 def test_unrelated_images_fail_cleanly_and_validate_refuses(tmp_path):
     ds = tmp_path / "ds"
-    rng = np.random.default_rng(1)
+    rng = np.random.default_rng(0)
     for i in range(6):  # independent noise textures: features, but no two images see the same scene
         img = cv2.resize(rng.integers(0, 256, (30, 40, 3), dtype=np.uint8), (160, 120), interpolation=cv2.INTER_CUBIC)
         atomic.write_image(ds / "images" / f"frame_{i:05d}.png", img)
@@ -296,4 +325,5 @@ def test_rotation_error_in_both_gauges():
     err = compare_poses(est, ref)
     assert err["rot_err_deg_median_rotation_gauge"] < 1e-4
     assert err["rot_err_deg_median"] > 0.01  # the centre fit tilts by what the noise turns the path
+    assert err["gauge_gap_deg"] == pytest.approx(err["rot_err_deg_median"], rel=1e-3)  # exact rotations: all tilt
     assert err["scale"] == pytest.approx(0.5, rel=0.01)

@@ -92,7 +92,8 @@ class SfMConfig:
     ba_loss: str = "soft_l1"  # final BA's robust loss: trivial (squared, as COLMAP's global BA) | soft_l1 | cauchy |
     # huber. A few bad observations (mask edges, compression) pull a squared loss. Simulator, 300 frames at 640x480,
     # same capture (rotation deg centre / rotation gauge, centre %): trivial 0.059 / 0.054 / 0.041, soft_l1 0.053 /
-    # 0.045 / 0.031; without masks 0.458 / 0.110 / 0.117 -> 0.285 / 0.090 / 0.084; fox unchanged (0.135-0.145 deg).
+    # 0.045 / 0.031; without masks 0.458 / 0.110 / 0.117 -> 0.285 / 0.090 / 0.084; another room (seed 1) 0.109 /
+    # 0.071 / 0.048 -> 0.075 / 0.050 / 0.036; fox unchanged (0.135-0.145 deg).
     # cauchy went further in the rotation gauge (0.031) but 5 s slower and its centre-fitted gauge tilted more
     ba_loss_scale: float = 1.0  # px: residuals beyond this are down-weighted
     seed: int = 0

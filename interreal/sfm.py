@@ -48,6 +48,7 @@ from .keypoints import refine_tracks
 from .report import StageReport, files_fingerprint, fingerprint, warning_lines
 
 COLMAP_DIR = "colmap"
+BA_LOSSES = ("trivial", "soft_l1", "cauchy", "huber")  # pycolmap.LossFunctionType, lower case
 KEY_STRIDE_MIN = 150  # frames from which a sequential capture gets SIFT's upsampled octave on every 3rd frame only
 FINE_MIN_SIDE = 640  # ... if its frames are this large: octave 0 finds ~520 features a frame at 640x480 (1660 with
 # octave -1), ~130 at 320x240, too few (45 frames at 320x240: 0.86 deg with every 3rd frame fine, < 0.5 all fine)
@@ -89,7 +90,7 @@ class SfMConfig:
     refine_tracks: str = "auto"  # align each track's keypoints to one view (KLT) before the final BA: on | off |
     # auto = on for dense captures at native size (see `use_track_refinement`)
     principal_point: str = "auto"  # final BA: auto (free (cx, cy) only when it clearly helps) | refine | fixed
-    ba_loss: str = "soft_l1"  # final BA's robust loss: trivial (squared, as COLMAP's global BA) | soft_l1 | cauchy |
+    ba_loss: str = "soft_l1"  # final BA's robust loss (BA_LOSSES): trivial (squared, as COLMAP's global BA) | soft_l1 | cauchy |
     # huber. A few bad observations (mask edges, compression) pull a squared loss. Simulator, 300 frames at 640x480,
     # same capture (rotation deg centre / rotation gauge, centre %): trivial 0.059 / 0.054 / 0.041, soft_l1 0.053 /
     # 0.045 / 0.031; without masks 0.458 / 0.110 / 0.117 -> 0.285 / 0.090 / 0.084; another room (seed 1) 0.109 /
@@ -706,6 +707,8 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
     if unknown:
         raise InputError(f"unknown pose options {sorted(unknown)}")
     cfg = SfMConfig(**{k: v for k, v in opts.items() if v is not None})
+    if cfg.ba_loss not in BA_LOSSES:
+        raise InputError(f"ba_loss must be one of {', '.join(BA_LOSSES)}, not {cfg.ba_loss!r}")
     images = list_images(ds / IMAGES_DIR)
     if len(images) < 3:
         raise InputError(f"{ds / IMAGES_DIR} has {len(images)} images; run `interreal frames INPUT {ds}` first "
@@ -921,7 +924,7 @@ def add_sfm_options(p) -> None:
     p.add_argument("--principal-point", choices=("auto", "refine", "fixed"), default="auto",
                    help="final bundle adjustment: free (cx, cy) when it clearly lowers the error (auto), always "
                         "(refine, as ns-process-data), or never")
-    p.add_argument("--ba-loss", choices=("trivial", "soft_l1", "cauchy", "huber"), default="soft_l1",
+    p.add_argument("--ba-loss", choices=BA_LOSSES, default="soft_l1",
                    help="robust loss of the final bundle adjustment (default soft_l1 at 1 px; trivial = squared, "
                         "as COLMAP's)")
     p.add_argument("--orientation", choices=("vertical", "up", "none"), default="vertical")

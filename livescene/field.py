@@ -218,11 +218,12 @@ class LiveSceneModel(nn.Module):
             raise LiveSceneError(f"model.mask_render must be 'probs' or 'logits', not {cfg.mask_render!r}")
         self.cfg = cfg
         self.n_objects = n_objects
-        self.background_k = BACKGROUND_K if cfg.background_k == "slice" else 0.0
+        bg_slice = cfg.background_k == "slice"
+        self.background_k = BACKGROUND_K if bg_slice else 0.0
         self.field = RadianceField(cfg)
         self.proposals = nn.ModuleList(
             [ProposalField(r, cfg.k_resolution if cfg.proposal_k else 0, cfg.proposal_features, cfg.proposal_hidden,
-                           cfg.background_k == "slice") for r in cfg.proposal_resolutions])
+                           bg_slice) for r in cfg.proposal_resolutions])
         self.prob = ProbabilityField(cfg)
         self.variable = FrameVariable(cfg)
         self.bg_color = nn.Parameter(torch.full((3,), 0.5), requires_grad=cfg.background == "learned")

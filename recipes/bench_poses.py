@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from interreal import atomic
-from interreal.conventions import opencv_to_opengl
+from interreal.conventions import frame_id, frame_index, opencv_to_opengl
 from interreal.dataset import load_dataset, load_transforms
 from interreal.frames import extract_frames
 from interreal.paths import require_shared
@@ -68,7 +68,7 @@ def write_truth_sfm_masks(capture: Path, ds: Path) -> None:
     import cv2
 
     for img in sorted((ds / "images").glob("*.png")):
-        fid = img.stem.split("_")[-1]
+        fid = frame_id(img)
         inst = cv2.imread(str(capture / "gt" / "instance" / f"{fid}.png"), cv2.IMREAD_UNCHANGED)
         h, w = cv2.imread(str(img), cv2.IMREAD_REDUCED_GRAYSCALE_2).shape[:2]
         use = ((inst == 0).astype(np.uint8) * 255)
@@ -130,7 +130,7 @@ def run_baseline(source: Path, work: Path, long_side: int | None = None) -> tupl
         steps["refine_s"] = round(time.perf_counter() - t, 2)
         rnames, c2w, _ = rec_poses(rec)
         for n, m in zip(rnames, opencv_to_opengl(c2w)):
-            est[int(Path(n).stem.split("_")[-1])] = m
+            est[frame_index(n)] = m
         steps["reproj_px"] = rec.compute_mean_reprojection_error()
         steps["models"] = sorted((r.num_reg_images() for r in recs.values()), reverse=True)
     steps["frames_s"] = round(t_frames, 2)

@@ -14,6 +14,12 @@ alignment itself: one call on tiled patches, not one per image pair); fox (50 re
 around an object, wide baselines, 28 % of observations aligned) unchanged within its run-to-run spread. Limiting
 the alignment to views within 3-8 deg of the reference lost the simulator's gain: what helps is that a whole track
 agrees with one view, not that neighbouring views agree.
+
+SIFT also misses most of the views a point is seen in: on the simulator a track spans 22 views of the ~60 within
+its reach. `extend_tracks` projects every point into the views near its track, aligns the patch there to the
+track's reference the same way, and adds what agrees as new observations. Tracks triple, each camera is held by
+three times as many points, and the final BA's camera centres err 40 % less (same model: 0.031 -> 0.017 % of the
+path, rotation 0.045 -> 0.025 deg in the rotation-fitted gauge) for ~12 s of alignment and a longer BA.
 """
 
 from __future__ import annotations
@@ -34,7 +40,18 @@ LK_MAX_RESIDUAL = 8.0  # mean absolute grey-level difference left after alignmen
 HALF = 7  # block half-size: window radius + largest shift + the gradient's support, with a margin
 PATCH = 2 * HALF + 1
 EDGE = LK_WINDOW // 2 + 3  # px from the image border a point needs for its alignment to read only real pixels
+TRACK_WINDOW = 30  # frames (name order) beyond a track's first and last view where `extend_tracks` looks for it
 LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-3)
+
+
+def _sorted_tracks(rec) -> tuple[list[int], dict[int, list[tuple[int, int, int]]]]:
+    """Registered image ids in name order (the video's order for a sequential capture), and each 3-D point's
+    observations as (position in that order, image id, point2D index), sorted by position."""
+    ids = sorted(rec.reg_image_ids(), key=lambda i: rec.images[i].name)
+    pos = {iid: k for k, iid in enumerate(ids)}
+    tracks = {int(pid): sorted((pos.get(e.image_id, -1), e.image_id, e.point2D_idx) for e in p.track.elements)
+              for pid, p in rec.points3D.items()}
+    return ids, tracks
 
 
 def _observations(rec) -> np.ndarray:
@@ -43,16 +60,12 @@ def _observations(rec) -> np.ndarray:
 
     The reference is the track's middle view in name order (the middle of the video for a sequential capture), so
     the furthest view is half a track away."""
-    order = {iid: k for k, iid in enumerate(sorted(rec.reg_image_ids(), key=lambda i: rec.images[i].name))}
     rows: list[tuple[int, int, int, int]] = []
-    for p in rec.points3D.values():
-        els = sorted(((e.image_id, e.point2D_idx) for e in p.track.elements), key=lambda e: order.get(e[0], -1))
+    for els in _sorted_tracks(rec)[1].values():
         if len(els) < 2:
             continue
-        ref, ref_idx = els[len(els) // 2]
-        for iid, idx in els:
-            if iid != ref:
-                rows.append((ref, ref_idx, iid, idx))
+        _, ref, ref_idx = els[len(els) // 2]
+        rows.extend((ref, ref_idx, iid, idx) for _, iid, idx in els if iid != ref)
     return np.asarray(rows, dtype=np.int64).reshape(-1, 4)
 
 
@@ -112,6 +125,46 @@ def align_points(ref_img: np.ndarray, img: np.ndarray, ref_xy: np.ndarray, xy: n
     return uv + to + 0.5, st & rin & tin
 
 
+def _align_rows(names: dict[int, str], image_dir: Path, ref_id: np.ndarray, ref_xy: np.ndarray, tgt_id: np.ndarray,
+                tgt_xy: np.ndarray, *, window: int, max_shift: float, max_residual: float, chunk: int,
+                bar: Any = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Align the points tgt_xy (N, 2) of images tgt_id (N,) onto the patches around ref_xy in images ref_id (COLMAP
+    pixel convention), reading each image once and cutting its blocks for every row it serves.
+    Returns (aligned xy (N, 2), accepted (N,), shift (N,) px)."""
+    n = len(ref_id)
+    ref_blk = np.empty((n, PATCH, PATCH), np.uint8)
+    tgt_blk = np.empty((n, PATCH, PATCH), np.uint8)
+    ref_o = np.empty((n, 2), np.int64)
+    tgt_o = np.empty((n, 2), np.int64)
+    inside = np.ones(n, bool)
+    none = np.zeros(0, np.int64)
+    as_ref, as_tgt = _rows_by_image(ref_id), _rows_by_image(tgt_id)
+    for iid in sorted(set(as_ref) | set(as_tgt)):
+        img = cv2.imread(str(image_dir / names[iid]), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise StageError(f"{image_dir / names[iid]} is not readable: re-run `interreal frames`")
+        for rows, xy, blk, org in ((as_ref.get(iid, none), ref_xy, ref_blk, ref_o),
+                                   (as_tgt.get(iid, none), tgt_xy, tgt_blk, tgt_o)):
+            if rows.size:
+                blk[rows], org[rows], ok = _patches(img, xy[rows] - 0.5)
+                inside[rows] &= ok
+        if bar is not None:
+            bar.update(1)
+    new = tgt_xy.astype(np.float64).copy()
+    ok = inside.copy()
+    resid = np.zeros(n)
+    for a in range(0, n, chunk):  # COLMAP pixel centres are at +0.5, OpenCV's at 0
+        s = slice(a, a + chunk)
+        uv, st, res = align_patches(ref_blk[s], tgt_blk[s], ref_xy[s] - 0.5 - ref_o[s], tgt_xy[s] - 0.5 - tgt_o[s],
+                                    window)
+        new[s] = uv + tgt_o[s] + 0.5
+        resid[s] = np.nan_to_num(res, nan=np.inf)
+        ok[s] &= st
+    shift = np.linalg.norm(new - tgt_xy, axis=1)
+    ok &= np.isfinite(new).all(1) & (shift <= max_shift) & (resid <= max_residual)
+    return new, ok, shift
+
+
 def refine_tracks(rec, image_dir: Path, *, window: int = LK_WINDOW, max_shift: float = LK_MAX_SHIFT,
                   max_residual: float = LK_MAX_RESIDUAL, chunk: int = 200_000, bar: Any = None) -> dict[str, Any]:
     """Align every track's observations to its reference view, in place (rec's 2-D points move; run a bundle
@@ -123,45 +176,98 @@ def refine_tracks(rec, image_dir: Path, *, window: int = LK_WINDOW, max_shift: f
     if n == 0:
         return {"observations": 0, "refined": 0, "refined_frac": 0.0, "median_shift_px": 0.0, "wall_s": 0.0}
     images = {iid: rec.images[iid] for iid in np.unique(obs[:, [0, 2]]).tolist()}
-    ref_xy = np.empty((n, 2))
-    xy = np.empty((n, 2))
-    ref_blk = np.empty((n, PATCH, PATCH), np.uint8)
-    tgt_blk = np.empty((n, PATCH, PATCH), np.uint8)
-    ref_o = np.empty((n, 2), np.int64)
-    tgt_o = np.empty((n, 2), np.int64)
-    inside = np.ones(n, bool)
-    none = np.zeros(0, np.int64)
-    as_ref, as_tgt = _rows_by_image(obs[:, 0]), _rows_by_image(obs[:, 2])
-    # one pass over the images: each one read once, its blocks cut for every observation it serves
-    for iid, im in images.items():
-        img = cv2.imread(str(image_dir / im.name), cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            raise StageError(f"{image_dir / im.name} is not readable: re-run `interreal frames`")
-        pts = im.points2D
-        for rows, col, blk, org, out in ((as_ref.get(iid, none), 1, ref_blk, ref_o, ref_xy),
-                                         (as_tgt.get(iid, none), 3, tgt_blk, tgt_o, xy)):
-            if rows.size:
-                out[rows] = [pts[int(k)].xy for k in obs[rows, col]]
-                blk[rows], org[rows], ok = _patches(img, out[rows] - 0.5)
-                inside[rows] &= ok
-        if bar is not None:
-            bar.update(1)
-    new = xy.copy()
-    ok = inside.copy()
-    resid = np.zeros(n)
-    for a in range(0, n, chunk):  # COLMAP pixel centres are at +0.5, OpenCV's at 0
-        s = slice(a, a + chunk)
-        uv, st, res = align_patches(ref_blk[s], tgt_blk[s], ref_xy[s] - 0.5 - ref_o[s], xy[s] - 0.5 - tgt_o[s], window)
-        new[s] = uv + tgt_o[s] + 0.5
-        resid[s] = np.nan_to_num(res, nan=np.inf)
-        ok[s] &= st
-    shift = np.linalg.norm(new - xy, axis=1)
-    ok &= np.isfinite(new).all(1) & (shift <= max_shift) & (resid <= max_residual)
-    for iid, im in images.items():
-        pts = im.points2D
-        rows = as_tgt.get(iid, none)
-        for k in rows[ok[rows]]:
-            pts[int(obs[k, 3])].xy = new[k]
+    ref_xy = np.array([images[int(i)].points2D[int(k)].xy for i, k in obs[:, :2]])
+    xy = np.array([images[int(i)].points2D[int(k)].xy for i, k in obs[:, 2:]])
+    new, ok, shift = _align_rows({i: im.name for i, im in images.items()}, image_dir, obs[:, 0], ref_xy, obs[:, 2],
+                                 xy, window=window, max_shift=max_shift, max_residual=max_residual, chunk=chunk,
+                                 bar=bar)
+    for k in np.nonzero(ok)[0]:
+        images[int(obs[k, 2])].points2D[int(obs[k, 3])].xy = new[k]
     return {"observations": n, "refined": int(ok.sum()), "refined_frac": round(float(ok.mean()), 4),
             "median_shift_px": round(float(np.median(shift[ok])), 4) if ok.any() else 0.0,
+            "wall_s": round(time.perf_counter() - t0, 2)}
+
+
+def _unmasked(mask_dir: Path | None, name: str, uv: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(N,) True where the COLMAP mask of image `name` (<name>.png, 0 = object pixels SfM must not use) allows uv
+    (N, 2; COLMAP pixels of an image of size (w, h)); all True without a mask."""
+    if mask_dir is None:
+        return np.ones(len(uv), bool)
+    mask = cv2.imread(str(mask_dir / f"{name}.png"), cv2.IMREAD_GRAYSCALE)
+    if mask is None:
+        return np.ones(len(uv), bool)
+    sx, sy = mask.shape[1] / size[0], mask.shape[0] / size[1]
+    u = np.clip((uv[:, 0] * sx).astype(np.int64), 0, mask.shape[1] - 1)
+    v = np.clip((uv[:, 1] * sy).astype(np.int64), 0, mask.shape[0] - 1)
+    return mask[v, u] > 0
+
+
+def extend_tracks(rec, image_dir: Path, mask_dir: Path | None = None, *, window: int = TRACK_WINDOW,
+                  max_shift: float = LK_MAX_SHIFT, max_residual: float = LK_MAX_RESIDUAL, chunk: int = 200_000,
+                  bar: Any = None) -> dict[str, Any]:
+    """Add each 3-D point to the registered views where it projects but SIFT did not find or match it, in place.
+
+    Candidates: views within `window` frames (name order) of the track's first and last view, where the point
+    lies in front of the camera, inside the image and off the object masks. Each candidate's patch is aligned to
+    the track's reference view (Lucas-Kanade from the projection); it becomes an observation when the alignment
+    converges within max_shift of the projection and the patches agree (an occluded or unlike view fails that).
+    Run a bundle adjustment after. bar: advanced once per image read. Returns counts for the report."""
+    import pycolmap
+
+    t0 = time.perf_counter()
+    ids, tracks = _sorted_tracks(rec)
+    tracks = {pid: els for pid, els in tracks.items() if els and els[0][0] >= 0}
+    empty = {"candidates": 0, "added": 0, "observations_before": 0, "track_length_before": 0.0,
+             "track_length_after": 0.0, "wall_s": 0.0}
+    if not tracks or not ids:
+        return empty
+    pids = np.fromiter(tracks, np.int64, len(tracks))
+    lo = np.array([els[0][0] for els in tracks.values()])
+    hi = np.array([els[-1][0] for els in tracks.values()])
+    ref = np.array([els[len(els) // 2][1:] for els in tracks.values()], np.int64)  # (P, 2): image id, point2D idx
+    xyz = np.stack([rec.points3D[int(p)].xyz for p in pids])
+    seen: dict[int, list[int]] = {iid: [] for iid in ids}
+    for k, els in enumerate(tracks.values()):
+        for _, iid, _ in els:
+            seen[iid].append(k)
+    n_before = sum(len(v) for v in seen.values())
+    cand_k, cand_img, cand_xy = [], [], []
+    for j, iid in enumerate(ids):
+        im = rec.images[iid]
+        cam = rec.cameras[im.camera_id]
+        sel = np.nonzero((lo - window <= j) & (j <= hi + window))[0]
+        sel = sel[~np.isin(sel, seen[iid])]
+        if not sel.size:
+            continue
+        pose = im.cam_from_world().matrix()
+        pc = xyz[sel] @ pose[:, :3].T + pose[:, 3]
+        front = pc[:, 2] > 1e-9
+        sel, pc = sel[front], pc[front]
+        if not sel.size:
+            continue
+        uv = np.asarray(cam.img_from_cam(pc), np.float64).reshape(-1, 2)
+        ok = np.isfinite(uv).all(1) & (uv[:, 0] >= EDGE) & (uv[:, 1] >= EDGE) \
+            & (uv[:, 0] <= cam.width - EDGE) & (uv[:, 1] <= cam.height - EDGE)
+        ok[ok] &= _unmasked(mask_dir, im.name, uv[ok], (cam.width, cam.height))
+        cand_k.append(sel[ok])
+        cand_img.append(np.full(int(ok.sum()), iid, np.int64))
+        cand_xy.append(uv[ok])
+    if not cand_k or not sum(len(c) for c in cand_k):
+        return {**empty, "observations_before": n_before, "track_length_before": round(n_before / len(pids), 2),
+                "track_length_after": round(n_before / len(pids), 2), "wall_s": round(time.perf_counter() - t0, 2)}
+    k_all, tgt_id, xy = np.concatenate(cand_k), np.concatenate(cand_img), np.concatenate(cand_xy)
+    ref_id = ref[k_all, 0]
+    images = {iid: rec.images[iid] for iid in ids}
+    track_ref_xy = np.array([images[int(i)].points2D[int(x)].xy for i, x in ref])  # once per track, not per candidate
+    ref_xy = track_ref_xy[k_all]
+    new, ok, _ = _align_rows({iid: im.name for iid, im in images.items()}, image_dir, ref_id, ref_xy, tgt_id, xy,
+                             window=LK_WINDOW, max_shift=max_shift, max_residual=max_residual, chunk=chunk, bar=bar)
+    for c in np.nonzero(ok)[0]:
+        pts = images[int(tgt_id[c])].points2D
+        pts.append(pycolmap.Point2D(new[c]))
+        rec.add_observation(int(pids[k_all[c]]), pycolmap.TrackElement(int(tgt_id[c]), len(pts) - 1))
+    added = int(ok.sum())
+    return {"candidates": int(len(k_all)), "added": added, "added_frac": round(added / len(k_all), 4),
+            "observations_before": n_before, "track_length_before": round(n_before / len(pids), 2),
+            "track_length_after": round((n_before + added) / len(pids), 2),
             "wall_s": round(time.perf_counter() - t0, 2)}

@@ -16,7 +16,9 @@ What differs from ns-process-data, and why (measured in reference/process-data.m
   the rest into that model (PnP + local BA): half the mapping time on 300 frames.
 - Before the final BA, on such dense captures, every track's keypoints are aligned to one view of the track
   (Lucas-Kanade on image patches, `keypoints.py`): SIFT locates each observation on its own, BA needs them to
-  agree (`use_track_refinement` gives where it helped and where not).
+  agree (`use_track_refinement` gives where it helped and where not). Then every 3-D point is looked for, the
+  same way, in the nearby views where it projects but SIFT did not match it (`keypoints.extend_tracks`): three
+  times the observations for the final BA.
 - The LARGEST model is kept (not sparse/0) and the others are reported; under 90 % registered a retry ladder runs.
 - Gravity-like orientation ("vertical"), centred and scaled to max |t| = 1; the transform is recorded.
 - Resumable: features, matches and the final model are reused when their inputs and settings are unchanged.
@@ -44,7 +46,7 @@ from .conventions import (
 )
 from .dataset import Frame, Intrinsics, list_images, write_transforms
 from .errors import InputError, StageError
-from .keypoints import refine_tracks
+from .keypoints import TRACK_WINDOW, extend_tracks, refine_tracks
 from .report import StageReport, files_fingerprint, fingerprint, warning_lines
 
 COLMAP_DIR = "colmap"
@@ -73,9 +75,10 @@ class SfMConfig:
     # for sequential captures of KEY_STRIDE_MIN frames or more at FINE_MIN_SIDE px, else 1 = every frame).
     # Simulator, 300 frames at 640x480 (rotation gauge): 166 s at 0.055 deg; every frame fine: 343 s at 0.040 deg
     key_stride: int = 0  # sequential captures: map every Nth frame first, then register the rest into that model
-    # (0 = auto: 3 from KEY_STRIDE_MIN frames on unless the octaves are mixed, else 1 = all at once). Simulator at
-    # 640x480 with fine_octave_stride 3: 151 s at 0.068 deg with 3, 161-166 s at 0.052-0.055 deg with 1; at 320x240
-    # (every frame fine) the strided way keeps the demo's poses stage at ~68 s
+    # (0 = auto: 3 from KEY_STRIDE_MIN frames on unless the octaves are mixed and the tracks not extended, else 1 =
+    # all at once). Simulator at 640x480 with fine_octave_stride 3, without track extension: 151 s at 0.068 deg with
+    # 3, 161-166 s at 0.052-0.055 deg with 1 (with it: see `ladder`); at 320x240 (every frame fine) the strided way
+    # keeps the demo's poses stage at ~68 s
     quadratic_overlap: bool = True
     loop_detection: bool = True
     mapper: str = "incremental"  # incremental | global
@@ -89,6 +92,10 @@ class SfMConfig:
     # 100 iterations): the final BA took half the time at the same error (synth 60: 0.0528 vs 0.0523 deg)
     refine_tracks: str = "auto"  # align each track's keypoints to one view (KLT) before the final BA: on | off |
     # auto = on for dense captures at native size (see `use_track_refinement`)
+    extend_tracks: str = "auto"  # add each 3-D point to the views where it projects but was not matched (KLT from the
+    # projection, checked against the track's reference patch) before the final BA: on | off | auto (see
+    # `use_track_extension`)
+    track_window: int = TRACK_WINDOW  # ... in views this many frames beyond the track's first and last
     principal_point: str = "auto"  # final BA: auto (free (cx, cy) only when it clearly helps) | refine | fixed
     ba_loss: str = "soft_l1"  # final BA's robust loss (BA_LOSSES): trivial (squared, as COLMAP's global BA) | soft_l1 | cauchy |
     # huber. A few bad observations (mask edges, compression) pull a squared loss. Simulator, 300 frames at 640x480,
@@ -323,6 +330,20 @@ def use_track_refinement(cfg: SfMConfig, n: int, long_side: int) -> bool:
     return _long_dense(cfg, n, long_side) and long_side <= cfg.sfm_long_side
 
 
+def use_track_extension(cfg: SfMConfig, n: int, long_side: int) -> bool:
+    """Whether to extend tracks into the views where their point projects (`keypoints.extend_tracks`).
+
+    auto = sequential captures that SIFT sees at native size, where it was measured (rotation deg centre /
+    rotation gauge, centre %, from the same model): simulator 300 frames at 640x480 0.053 / 0.045 / 0.031 ->
+    0.034 / 0.025 / 0.017; 300 at 320x240 0.149 / 0.115 / 0.104 -> 0.106 / 0.062 / 0.068; 90 at 320x240
+    0.303 / 0.163 / 0.079 -> 0.157 / 0.077 / 0.066. Not on fox (50 photos around an object, exhaustive matching,
+    SIFT at 1000 of 1600 px): 0.138 / 0.091 / 0.029 -> 0.148 / 0.091 / 0.028, the same within its spread."""
+    if cfg.extend_tracks in ("on", "off"):
+        return cfg.extend_tracks == "on"
+    sequential = cfg.matcher == "sequential" or (cfg.matcher == "auto" and n > cfg.exhaustive_max)
+    return sequential and long_side <= cfg.sfm_long_side
+
+
 def resolve_octave(cfg: SfMConfig, sample: Path) -> int:
     """The SIFT first octave: cfg's, else -1 for frames SIFT sees at native size and 0 for downscaled ones."""
     if cfg.first_octave is not None:
@@ -459,14 +480,20 @@ PP_MIN_GAIN = 0.003  # relative RMS reprojection gain that justifies freeing (cx
 PP_MAX_SHIFT = 0.02  # ... and the largest plausible move of (cx, cy), as a fraction of the image diagonal
 
 
-def _ba(pc, rec, cfg: SfMConfig, principal_point: bool) -> float:
-    """One global bundle adjustment in place; returns the RMS reprojection error of the points."""
+EXTENDED_BA_TOLERANCE = 1e-3  # the BA after `extend_tracks` starts at the optimum of the same points and cameras:
+# on the simulator LM's second step changed the cost by 1e-4 and the poses by < 0.002 deg, and each step costs
+# ~3 s on three times the observations (12 s instead of 22 s at 1e-6)
+
+
+def _ba(pc, rec, cfg: SfMConfig, principal_point: bool, tolerance: float | None = None) -> float:
+    """One global bundle adjustment in place (to cfg.ba_tolerance unless told); returns the RMS reprojection
+    error of the points."""
     opt = pc.BundleAdjustmentOptions(refine_focal_length=True, refine_principal_point=principal_point,
                                      refine_extra_params=True, print_summary=False)
     opt.ceres.loss_function_type = getattr(pc.LossFunctionType, cfg.ba_loss.upper())
     opt.ceres.loss_function_scale = cfg.ba_loss_scale
     opt.ceres.solver_options.num_threads = cfg.num_threads
-    opt.ceres.solver_options.function_tolerance = cfg.ba_tolerance
+    opt.ceres.solver_options.function_tolerance = cfg.ba_tolerance if tolerance is None else tolerance
     pc.bundle_adjustment(rec, opt)
     errs = np.fromiter((p.error for p in rec.points3D.values()), dtype=np.float64)
     return float(np.sqrt(np.mean(errs ** 2))) if errs.size else 0.0
@@ -501,15 +528,17 @@ def refine_intrinsics(pc, rec, cfg: SfMConfig, mode: str | bool = "auto") -> dic
     return {"principal_point": "fixed", **info}
 
 
-def ladder(cfg: SfMConfig, n: int, mixed_octaves: bool = False) -> list[Rung]:
+def ladder(cfg: SfMConfig, n: int, mixed_octaves: bool = False, extended: bool = False) -> list[Rung]:
     """The base attempt, then what to try when too few frames register (each rung only adds matches).
     mixed_octaves: only some frames got SIFT's upsampled octave (`fine_frames`); auto key_stride then maps all
-    frames at once, since the strided way gives the fine frames' tracks fewer views."""
+    frames at once, since the strided way gives the fine frames' tracks fewer views, unless `extended`: the tracks
+    are extended into their views before the final BA (simulator, 300 frames at 640x480: 0.038 deg and 0.016 %
+    in 203 s with stride 3, 0.038 deg and 0.017 % in 217 s all at once)."""
     if cfg.matcher == "exhaustive" or (cfg.matcher == "auto" and n <= cfg.exhaustive_max):
         base = Rung("base", "exhaustive", cfg.overlap, False, cfg.mapper)
         rungs = [base, replace(base, name="relaxed", relaxed=True)]
     else:
-        stride = cfg.key_stride or (3 if n >= KEY_STRIDE_MIN and not mixed_octaves else 1)
+        stride = cfg.key_stride or (3 if n >= KEY_STRIDE_MIN and (extended or not mixed_octaves) else 1)
         base = Rung("base", "sequential", cfg.overlap, cfg.loop_detection, cfg.mapper,
                     stride=stride if cfg.mapper == "incremental" else 1)
         rungs = [base, replace(base, name="more-overlap", overlap=cfg.overlap * 3, loop_detection=True, stride=1)]
@@ -745,7 +774,8 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
                 st["reused"] = False
             with pc.Database.open(str(db)) as d:
                 st["keypoints_mean"] = round(d.num_keypoints() / max(1, d.num_images()), 1)
-        rungs = ladder(cfg, len(images), mixed_octaves=len(fine) < len(images))
+        extend = use_track_extension(cfg, len(images), side)
+        rungs = ladder(cfg, len(images), mixed_octaves=len(fine) < len(images), extended=extend)
         fp_final = fingerprint(fp_feat, {k: v for k, v in settings.items() if k not in ("verbose", "undistort")},
                                [asdict(r) for r in rungs])
         final = work / "sparse" / "0"
@@ -754,7 +784,8 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
             rec = pc.Reconstruction(str(final))
         else:
             rec = _run_ladder(pc, ds, work, db, names, rungs, fp_feat, state, state_path, cfg, rep,
-                              refine=use_track_refinement(cfg, len(images), side))
+                              refine=use_track_refinement(cfg, len(images), side),
+                              extend=extend, mask_dir=mask_dir)
         total = len(images)
         stats = model_stats(rec)
         frac = stats["registered"] / total
@@ -802,9 +833,11 @@ def _check_sizes(images: list[Path]) -> None:
                          f"(e.g. {list(sizes.values())[:2]}); re-run `interreal frames`")
 
 
-def _run_ladder(pc, ds, work, db, names, rungs, fp_feat, state, state_path, cfg, rep, refine: bool):
+def _run_ladder(pc, ds, work, db, names, rungs, fp_feat, state, state_path, cfg, rep, refine: bool,
+                extend: bool = False, mask_dir: Path | None = None):
     """Match + map rung after rung until >= retry_below registered; keep the best model (its tracks aligned when
-    `refine`, then the final BA); write colmap/sparse/."""
+    `refine`, then the final BA; when `extend`, tracks extended off the SfM masks and a last BA); write
+    colmap/sparse/."""
     n = len(names)
     best = None  # (registered, -reproj, rung, rec, models)
     tried = []
@@ -872,6 +905,14 @@ def _run_ladder(pc, ds, work, db, names, rungs, fp_feat, state, state_path, cfg,
         rec = res.pop("_rec", rec)
         st.update(res)
     rep.figures["principal_point"] = res["principal_point"]
+    rep.figures["track_extension"] = extend
+    if extend:  # from the adjusted poses; (cx, cy) stays as decided on the matched tracks
+        with rep.step("extend_tracks") as st, NativeLog(work / "colmap.log", cfg.verbose) as log:
+            bar = log.bar(rec.num_reg_images(), "track extension")
+            st.update(extend_tracks(rec, ds / IMAGES_DIR, mask_dir, window=cfg.track_window, bar=bar))
+            bar.close()
+        with rep.step("final_ba") as st, NativeLog(work / "colmap.log", cfg.verbose):
+            st["rms_px"] = round(_ba(pc, rec, cfg, res["principal_point"] == "refined", EXTENDED_BA_TOLERANCE), 5)
     models = {**models, sizes[0][1]: rec}
     if len(tried) > 1:
         rep.figures["ladder_helped"] = rung.name if rung.name != "base" else None
@@ -916,7 +957,7 @@ def add_sfm_options(p) -> None:
     p.add_argument("--key-stride", type=int, default=0,
                    help="map every Nth frame first, then register the others into that model (0 = auto: 3 for "
                         f"sequential captures of >= {KEY_STRIDE_MIN} frames whose frames all get the same SIFT "
-                        "octaves, else 1 = all at once; 1 is slower, a bit more accurate)")
+                        "octaves or whose tracks are extended, else 1 = all at once)")
     p.add_argument("--fine-octave-stride", type=int, default=0,
                    help="when SIFT sees frames at native size it also searches a 2x upsampled octave; give it to "
                         f"every Nth frame only (0 = auto: 3 for sequential captures of >= {KEY_STRIDE_MIN} frames of "
@@ -932,6 +973,10 @@ def add_sfm_options(p) -> None:
                    help="align each track's keypoints to one view (Lucas-Kanade) before the final bundle adjustment "
                         f"(auto: for sequential captures of >= {KEY_STRIDE_MIN} frames at native size >= "
                         f"{FINE_MIN_SIDE} px, where it was measured to help)")
+    p.add_argument("--extend-tracks", choices=("auto", "on", "off"), default="auto",
+                   help="before the final bundle adjustment, add each 3-D point to the frames where it projects but "
+                        "was not matched (Lucas-Kanade from the projection, checked against the track's patch; "
+                        "auto: sequential captures that SIFT sees at native size)")
     p.add_argument("--no-masks", action="store_true", help="do not mask object pixels out of SfM features")
     p.add_argument("--undistort", action="store_true", help="also write DS/undistorted/ (pinhole images, COLMAP model)")
     p.add_argument("--verbose", action="store_true", help="show COLMAP's log")
@@ -941,7 +986,7 @@ def sfm_options(args) -> dict[str, Any]:
     return {"sfm_long_side": args.sfm_long_side, "matcher": args.matcher, "mapper": args.mapper,
             "camera_model": args.camera_model, "max_features": args.max_features, "orientation": args.orientation,
             "key_stride": args.key_stride, "fine_octave_stride": args.fine_octave_stride,
-            "refine_tracks": args.refine_tracks,
+            "refine_tracks": args.refine_tracks, "extend_tracks": args.extend_tracks,
             "use_masks": not args.no_masks, "verbose": args.verbose,
             "principal_point": args.principal_point, "undistort": args.undistort, "ba_loss": args.ba_loss}
 

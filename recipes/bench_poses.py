@@ -12,7 +12,7 @@ swing the centre fit by up to 0.07 deg about the path's long axis), wall_s (fram
 - ours-masks / ours-nomasks: `extract_frames` + `estimate_poses` with defaults (synth: with and without the truth
   object masks as DS/sfm_masks); fox has no moving parts, so only `ours`. ours-masks-fine (>= 150 frames): SIFT's
   upsampled octave on every frame instead of every 3rd (the default for long captures), all frames mapped at once
-  as in the default: the speed/accuracy trade.
+  (the default maps every 3rd first, its tracks extended afterwards): the speed/accuracy trade.
 - baseline: ns-process-data's recipe: frames at full size picked uniformly (all of them here), OPENCV camera, SIFT at
   COLMAP defaults, sequential matching (overlap 10, quadratic, no loop detection), incremental mapping with
   ba_global_function_tolerance=1e-6, sparse/0 taken as is, then a principal-point bundle adjustment

@@ -165,6 +165,57 @@ def test_track_refinement_pulls_perturbed_keypoints_back(posed):
     assert np.median(back) < 0.1 < np.median(np.linalg.norm(noise, axis=1)), np.median(back)
 
 
+def test_track_extension_finds_removed_observations(posed):
+    """Observations taken out of their tracks come back where they were (Lucas-Kanade from the projection onto the
+    track's reference patch), and nothing is added on the object masks or to views a point does not project into."""
+    import pycolmap
+
+    from interreal.keypoints import _sorted_tracks, extend_tracks, refine_tracks
+
+    ds, _ = posed
+    rec = pycolmap.Reconstruction(str(ds / "colmap" / "sparse" / "0"))
+    refine_tracks(rec, ds / "images")  # observations that agree: what the extension's alignment reproduces
+    rng = np.random.default_rng(0)
+    dropped = []  # (point3D id, image id, xy): one non-reference view of every other track of >= 5 views
+    for pid, els in _sorted_tracks(rec)[1].items():
+        if len(els) >= 5 and rng.random() < 0.5:
+            _, iid, idx = els[int(rng.choice([0, len(els) - 1]))]  # an end: the track's range shrinks
+            dropped.append((pid, iid, np.array(rec.images[iid].points2D[idx].xy)))
+            rec.delete_observation(iid, idx)
+    assert len(dropped) > 100
+    before = rec.compute_num_observations()
+    sizes = {iid: len(im.points2D) for iid, im in rec.images.items()}
+    masks = ds / "colmap" / "masks"  # the SfM masks the poses stage derived from DS/masks (255 = usable)
+    info = extend_tracks(rec, ds / "images", masks, window=24)
+    assert info["observations_before"] == before and info["added"] == rec.compute_num_observations() - before
+    assert info["track_length_after"] > info["track_length_before"]
+    found = []
+    for pid, iid, xy in dropped:
+        back = [rec.images[e.image_id].points2D[e.point2D_idx].xy for e in rec.points3D[pid].track.elements
+                if e.image_id == iid]
+        if back:
+            found.append(np.linalg.norm(np.asarray(back[0]) - xy))
+    assert len(found) > 0.6 * len(dropped), (len(found), len(dropped))  # 0.70: the rest sit at an image edge or
+    # changed too much from the reference view (tracks end where they stop matching)
+    assert np.median(found) < 0.1 and np.percentile(found, 90) < 0.5, (np.median(found), np.percentile(found, 90))
+    # an added observation is a new 2-D point of its view, on background pixels, near its point's projection
+    n_new = 0
+    for pid, p in rec.points3D.items():
+        for e in p.track.elements:
+            if e.point2D_idx < sizes[e.image_id]:
+                continue
+            n_new += 1
+            im = rec.images[e.image_id]
+            xy = np.asarray(im.points2D[e.point2D_idx].xy)
+            proj = rec.cameras[im.camera_id].img_from_cam((im.cam_from_world().matrix() @ np.r_[p.xyz, 1])[None])
+            assert np.linalg.norm(proj[0] - xy) < 1.6, (pid, e.image_id)
+            mask = cv2.imread(str(masks / f"{im.name}.png"), cv2.IMREAD_GRAYSCALE)
+            assert mask[int(xy[1]), int(xy[0])] > 0, (pid, im.name)
+    assert n_new == info["added"]
+    narrow = extend_tracks(pycolmap.Reconstruction(str(ds / "colmap" / "sparse" / "0")), ds / "images", window=0)
+    assert narrow["candidates"] < info["candidates"]  # a narrower window looks in fewer views
+
+
 def test_robust_final_ba_resists_bad_observations(posed, capture):
     """The final BA's soft-L1 loss (the default) keeps poses where a few observations are 3-6 px off; the squared
     loss lets them pull every camera."""
@@ -290,14 +341,19 @@ def test_upsampled_octave_on_every_third_frame(tmp_path):
     assert fine_frames(SfMConfig(), 300, -1, 320) == list(range(300))  # small frames: octave 0 finds too little
     # mixed octaves map every frame at once; uniform ones map every 3rd frame first (the strided test below)
     assert ladder(SfMConfig(), 300, mixed_octaves=True)[0].stride == 1 and ladder(SfMConfig(), 300)[0].stride == 3
+    assert ladder(SfMConfig(), 300, mixed_octaves=True, extended=True)[0].stride == 3  # extension restores tracks
     cap = render_capture(tmp_path / "cap", frames=30, size=(640, 480))
     ds = tmp_path / "ds"
     extract_frames(cap / "video.mp4", ds, target=30)
     truth_masks_npy(cap, ds)
-    fig = estimate_poses(ds, fine_octave_stride=3, matcher="sequential", refine_tracks="on")
+    fig = estimate_poses(ds, fine_octave_stride=3, matcher="sequential", refine_tracks="on", extend_tracks="on")
     assert fig["registered"] == fig["total"] == 30 and fig["track_refinement"] is True
+    assert fig["track_extension"] is True
     rep = json.loads((ds / "reports" / "poses.json").read_text())
     assert rep["steps"]["refine_tracks"]["refined_frac"] > 0.6  # measured 0.84 on 300 frames at 640x480
+    ext = rep["steps"]["extend_tracks"]
+    assert ext["track_length_after"] > 1.3 * ext["track_length_before"], ext
+    assert rep["steps"]["final_ba"]["rms_px"] < 1.0
     err = errors(ds, gt(cap))
     assert err["rot_err_deg_median"] < 0.35 and err["center_err_pct_median"] < 0.2, err  # measured 0.19, 0.067
     with pycolmap.Database.open(str(ds / "colmap" / "database.db")) as d:

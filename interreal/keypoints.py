@@ -15,8 +15,8 @@ around an object, wide baselines, 28 % of observations aligned) unchanged within
 the alignment to views within 3-8 deg of the reference lost the simulator's gain: what helps is that a whole track
 agrees with one view, not that neighbouring views agree.
 
-SIFT also misses most of the views a point is seen in: on the simulator a track spans 22 views of the ~60 within
-its reach. `extend_tracks` projects every point into the views near its track, aligns the patch there to the
+SIFT also misses most of the views a point is seen in: on the simulator a track has 22 views, and aligned patches
+find its point in 44 more within 30 frames of its ends. `extend_tracks` projects every point into the views near its track, aligns the patch there to the
 track's reference the same way, and adds what agrees as new observations. Tracks triple, each camera is held by
 three times as many points, and the final BA's camera centres err 40 % less (same model: 0.031 -> 0.017 % of the
 path, rotation 0.045 -> 0.025 deg in the rotation-fitted gauge) for ~12 s of alignment and a longer BA.
@@ -217,10 +217,15 @@ def extend_tracks(rec, image_dir: Path, mask_dir: Path | None = None, *, window:
     t0 = time.perf_counter()
     ids, tracks = _sorted_tracks(rec)
     tracks = {pid: els for pid, els in tracks.items() if els and els[0][0] >= 0}
-    empty = {"candidates": 0, "added": 0, "observations_before": 0, "track_length_before": 0.0,
-             "track_length_after": 0.0, "wall_s": 0.0}
+
+    def report(candidates: int, added: int, before: int) -> dict[str, Any]:
+        n = max(1, len(tracks))
+        return {"candidates": candidates, "added": added, "added_frac": round(added / max(1, candidates), 4),
+                "observations_before": before, "track_length_before": round(before / n, 2),
+                "track_length_after": round((before + added) / n, 2), "wall_s": round(time.perf_counter() - t0, 2)}
+
     if not tracks or not ids:
-        return empty
+        return report(0, 0, 0)
     pids = np.fromiter(tracks, np.int64, len(tracks))
     lo = np.array([els[0][0] for els in tracks.values()])
     hi = np.array([els[-1][0] for els in tracks.values()])
@@ -240,21 +245,20 @@ def extend_tracks(rec, image_dir: Path, mask_dir: Path | None = None, *, window:
         if not sel.size:
             continue
         pose = im.cam_from_world().matrix()
-        pc = xyz[sel] @ pose[:, :3].T + pose[:, 3]
-        front = pc[:, 2] > 1e-9
-        sel, pc = sel[front], pc[front]
+        xc = xyz[sel] @ pose[:, :3].T + pose[:, 3]
+        front = xc[:, 2] > 1e-9
+        sel, xc = sel[front], xc[front]
         if not sel.size:
             continue
-        uv = np.asarray(cam.img_from_cam(pc), np.float64).reshape(-1, 2)
+        uv = np.asarray(cam.img_from_cam(xc), np.float64).reshape(-1, 2)
         ok = np.isfinite(uv).all(1) & (uv[:, 0] >= EDGE) & (uv[:, 1] >= EDGE) \
             & (uv[:, 0] <= cam.width - EDGE) & (uv[:, 1] <= cam.height - EDGE)
         ok[ok] &= _unmasked(mask_dir, im.name, uv[ok], (cam.width, cam.height))
         cand_k.append(sel[ok])
         cand_img.append(np.full(int(ok.sum()), iid, np.int64))
         cand_xy.append(uv[ok])
-    if not cand_k or not sum(len(c) for c in cand_k):
-        return {**empty, "observations_before": n_before, "track_length_before": round(n_before / len(pids), 2),
-                "track_length_after": round(n_before / len(pids), 2), "wall_s": round(time.perf_counter() - t0, 2)}
+    if not sum(len(c) for c in cand_k):
+        return report(0, 0, n_before)
     k_all, tgt_id, xy = np.concatenate(cand_k), np.concatenate(cand_img), np.concatenate(cand_xy)
     ref_id = ref[k_all, 0]
     images = {iid: rec.images[iid] for iid in ids}
@@ -266,8 +270,4 @@ def extend_tracks(rec, image_dir: Path, mask_dir: Path | None = None, *, window:
         pts = images[int(tgt_id[c])].points2D
         pts.append(pycolmap.Point2D(new[c]))
         rec.add_observation(int(pids[k_all[c]]), pycolmap.TrackElement(int(tgt_id[c]), len(pts) - 1))
-    added = int(ok.sum())
-    return {"candidates": int(len(k_all)), "added": added, "added_frac": round(added / len(k_all), 4),
-            "observations_before": n_before, "track_length_before": round(n_before / len(pids), 2),
-            "track_length_after": round((n_before + added) / len(pids), 2),
-            "wall_s": round(time.perf_counter() - t0, 2)}
+    return report(int(len(k_all)), int(ok.sum()), n_before)

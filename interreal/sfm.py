@@ -336,8 +336,9 @@ def use_track_extension(cfg: SfMConfig, n: int, long_side: int) -> bool:
     auto = sequential captures that SIFT sees at native size, where it was measured (rotation deg centre /
     rotation gauge, centre %, from the same model): simulator 300 frames at 640x480 0.053 / 0.045 / 0.031 ->
     0.034 / 0.025 / 0.017; 300 at 320x240 0.149 / 0.115 / 0.104 -> 0.106 / 0.062 / 0.068; 90 at 320x240
-    0.303 / 0.163 / 0.079 -> 0.157 / 0.077 / 0.066. Not on fox (50 photos around an object, exhaustive matching,
-    SIFT at 1000 of 1600 px): 0.138 / 0.091 / 0.029 -> 0.148 / 0.091 / 0.028, the same within its spread."""
+    0.303 / 0.163 / 0.079 -> 0.157 / 0.077 / 0.066. Not on fox (50 photos around an object, SIFT at 1000 of 1600
+    px, so not native): two whole runs gave 0.138 / 0.091 / 0.029 off, 0.148 / 0.091 / 0.028 on, the same within
+    its spread."""
     if cfg.extend_tracks in ("on", "off"):
         return cfg.extend_tracks == "on"
     sequential = cfg.matcher == "sequential" or (cfg.matcher == "auto" and n > cfg.exhaustive_max)

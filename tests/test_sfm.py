@@ -214,6 +214,7 @@ def test_track_extension_finds_removed_observations(posed):
     assert n_new == info["added"]
     narrow = extend_tracks(pycolmap.Reconstruction(str(ds / "colmap" / "sparse" / "0")), ds / "images", window=0)
     assert narrow["candidates"] < info["candidates"]  # a narrower window looks in fewer views
+    assert extend_tracks(pycolmap.Reconstruction(), ds / "images")["added"] == 0  # no model, nothing to do
 
 
 def test_robust_final_ba_resists_bad_observations(posed, capture):

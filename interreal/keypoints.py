@@ -40,6 +40,7 @@ LK_MAX_RESIDUAL = 8.0  # mean absolute grey-level difference left after alignmen
 HALF = 7  # block half-size: window radius + largest shift + the gradient's support, with a margin
 PATCH = 2 * HALF + 1
 EDGE = LK_WINDOW // 2 + 3  # px from the image border a point needs for its alignment to read only real pixels
+EXTEND_BATCH = 1_000_000  # candidates aligned at once by `extend_tracks` (~0.5 GB of image blocks)
 TRACK_WINDOW = 30  # frames (name order) beyond a track's first and last view where `extend_tracks` looks for it
 LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-3)
 
@@ -204,14 +205,16 @@ def _unmasked(mask_dir: Path | None, name: str, uv: np.ndarray, size: tuple[int,
 
 def extend_tracks(rec, image_dir: Path, mask_dir: Path | None = None, *, window: int = TRACK_WINDOW,
                   max_shift: float = LK_MAX_SHIFT, max_residual: float = LK_MAX_RESIDUAL, chunk: int = 200_000,
-                  bar: Any = None) -> dict[str, Any]:
+                  batch: int = EXTEND_BATCH, bar: Any = None) -> dict[str, Any]:
     """Add each 3-D point to the registered views where it projects but SIFT did not find or match it, in place.
 
     Candidates: views within `window` frames (name order) of the track's first and last view, where the point
     lies in front of the camera, inside the image and off the object masks. Each candidate's patch is aligned to
     the track's reference view (Lucas-Kanade from the projection); it becomes an observation when the alignment
     converges within max_shift of the projection and the patches agree (an occluded or unlike view fails that).
-    Run a bundle adjustment after. bar: advanced once per image read. Returns counts for the report."""
+    Candidates are aligned in batches of consecutive views of up to `batch` candidates (each holds two image
+    blocks, ~0.5 KB), so memory stays bounded on long captures; a view's candidates are never split.
+    Run a bundle adjustment after. bar: advanced once per view. Returns counts for the report."""
     import pycolmap
 
     t0 = time.perf_counter()
@@ -236,38 +239,47 @@ def extend_tracks(rec, image_dir: Path, mask_dir: Path | None = None, *, window:
         for _, iid, _ in els:
             seen[iid].append(k)
     n_before = sum(len(v) for v in seen.values())
-    cand_k, cand_img, cand_xy = [], [], []
+    cand_k, cand_img, cand_xy = [], [], []  # per view in `ids` order (empty where none)
     for j, iid in enumerate(ids):
         im = rec.images[iid]
         cam = rec.cameras[im.camera_id]
         sel = np.nonzero((lo - window <= j) & (j <= hi + window))[0]
         sel = sel[~np.isin(sel, seen[iid])]
-        if not sel.size:
-            continue
         pose = im.cam_from_world().matrix()
         xc = xyz[sel] @ pose[:, :3].T + pose[:, 3]
         front = xc[:, 2] > 1e-9
         sel, xc = sel[front], xc[front]
-        if not sel.size:
-            continue
-        uv = np.asarray(cam.img_from_cam(xc), np.float64).reshape(-1, 2)
+        uv = np.asarray(cam.img_from_cam(xc), np.float64).reshape(-1, 2) if sel.size else np.zeros((0, 2))
         ok = np.isfinite(uv).all(1) & (uv[:, 0] >= EDGE) & (uv[:, 1] >= EDGE) \
             & (uv[:, 0] <= cam.width - EDGE) & (uv[:, 1] <= cam.height - EDGE)
-        ok[ok] &= _unmasked(mask_dir, im.name, uv[ok], (cam.width, cam.height))
+        if ok.any():
+            ok[ok] &= _unmasked(mask_dir, im.name, uv[ok], (cam.width, cam.height))
         cand_k.append(sel[ok])
         cand_img.append(np.full(int(ok.sum()), iid, np.int64))
         cand_xy.append(uv[ok])
     if not sum(len(c) for c in cand_k):
         return report(0, 0, n_before)
-    k_all, tgt_id, xy = np.concatenate(cand_k), np.concatenate(cand_img), np.concatenate(cand_xy)
-    ref_id = ref[k_all, 0]
     images = {iid: rec.images[iid] for iid in ids}
+    names = {iid: im.name for iid, im in images.items()}
     track_ref_xy = np.array([images[int(i)].points2D[int(x)].xy for i, x in ref])  # once per track, not per candidate
-    ref_xy = track_ref_xy[k_all]
-    new, ok, _ = _align_rows({iid: im.name for iid, im in images.items()}, image_dir, ref_id, ref_xy, tgt_id, xy,
-                             window=LK_WINDOW, max_shift=max_shift, max_residual=max_residual, chunk=chunk, bar=bar)
-    for c in np.nonzero(ok)[0]:
-        pts = images[int(tgt_id[c])].points2D
-        pts.append(pycolmap.Point2D(new[c]))
-        rec.add_observation(int(pids[k_all[c]]), pycolmap.TrackElement(int(tgt_id[c]), len(pts) - 1))
-    return report(int(len(k_all)), int(ok.sum()), n_before)
+    n_cand = added = 0
+    start = 0
+    while start < len(ids):  # consecutive views up to `batch` candidates (at least one view)
+        stop, rows = start + 1, len(cand_k[start])
+        while stop < len(ids) and rows + len(cand_k[stop]) <= batch:
+            rows += len(cand_k[stop])
+            stop += 1
+        k_all = np.concatenate(cand_k[start:stop])
+        tgt_id, xy = np.concatenate(cand_img[start:stop]), np.concatenate(cand_xy[start:stop])
+        if len(k_all):
+            new, ok, _ = _align_rows(names, image_dir, ref[k_all, 0], track_ref_xy[k_all], tgt_id, xy,
+                                     window=LK_WINDOW, max_shift=max_shift, max_residual=max_residual, chunk=chunk)
+            for c in np.nonzero(ok)[0]:
+                pts = images[int(tgt_id[c])].points2D
+                pts.append(pycolmap.Point2D(new[c]))
+                rec.add_observation(int(pids[k_all[c]]), pycolmap.TrackElement(int(tgt_id[c]), len(pts) - 1))
+            n_cand, added = n_cand + len(k_all), added + int(ok.sum())
+        if bar is not None:
+            bar.update(stop - start)
+        start = stop
+    return report(n_cand, added, n_before)

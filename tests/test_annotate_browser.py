@@ -85,6 +85,19 @@ def saves(page) -> int:
     return int(page.get_attribute("body", "data-saves") or 0)
 
 
+def laid_out_box(page, selector: str) -> dict:
+    """The element's box once it is visible and laid out: a save re-renders the object list, and a box asked for
+    in between is None (seen once in CI)."""
+    loc = page.locator(selector)
+    for _ in range(100):
+        loc.wait_for(state="visible")
+        box = loc.bounding_box()
+        if box is not None and box["width"] > 0:
+            return box
+        page.wait_for_timeout(50)
+    raise AssertionError(f"{selector} never got a box")
+
+
 def saved(page, before: int) -> None:
     """Wait until the page has saved an edit beyond the first `before`."""
     try:
@@ -199,7 +212,7 @@ def test_draw_propagate_label_reload(browser, server, tmp_path):
     assert read_labels(ds) == {f"frame_{fid}": {"door": pytest.approx(value)}}
     # the other object's slider, dragged with the mouse all the way to "open"
     drawer_name = truth["names"][1]
-    box = page.locator(f'.obj[data-object="{drawer_name}"] .state-slider').bounding_box()
+    box = laid_out_box(page, f'.obj[data-object="{drawer_name}"] .state-slider')
     n = saves(page)
     page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
     page.mouse.down()

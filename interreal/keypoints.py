@@ -16,10 +16,11 @@ the alignment to views within 3-8 deg of the reference lost the simulator's gain
 agrees with one view, not that neighbouring views agree.
 
 SIFT also misses most of the views a point is seen in: on the simulator a track has 22 views, and aligned patches
-find its point in 44 more within 30 frames of its ends. `extend_tracks` projects every point into the views near its track, aligns the patch there to the
-track's reference the same way, and adds what agrees as new observations. Tracks triple, each camera is held by
-three times as many points, and the final BA's camera centres err 40 % less (same model: 0.031 -> 0.017 % of the
-path, rotation 0.045 -> 0.025 deg in the rotation-fitted gauge) for ~12 s of alignment and a longer BA.
+find its point in 44 more within 30 frames of its ends. `extend_tracks` projects every point into the views near
+its track, aligns the patch there to the track's reference the same way, and adds what agrees as new
+observations. Tracks triple, each camera is held by three times as many points, and the final BA's camera
+centres err 40 % less (same model: 0.031 -> 0.017 % of the path, rotation 0.045 -> 0.025 deg in the
+rotation-fitted gauge) for ~12 s of alignment and a longer BA.
 """
 
 from __future__ import annotations
@@ -239,9 +240,10 @@ def extend_tracks(rec, image_dir: Path, mask_dir: Path | None = None, *, window:
         for _, iid, _ in els:
             seen[iid].append(k)
     n_before = sum(len(v) for v in seen.values())
+    images = {iid: rec.images[iid] for iid in ids}
     cand_k, cand_img, cand_xy = [], [], []  # per view in `ids` order (empty where none)
     for j, iid in enumerate(ids):
-        im = rec.images[iid]
+        im = images[iid]
         cam = rec.cameras[im.camera_id]
         sel = np.nonzero((lo - window <= j) & (j <= hi + window))[0]
         sel = sel[~np.isin(sel, seen[iid])]
@@ -259,7 +261,6 @@ def extend_tracks(rec, image_dir: Path, mask_dir: Path | None = None, *, window:
         cand_xy.append(uv[ok])
     if not sum(len(c) for c in cand_k):
         return report(0, 0, n_before)
-    images = {iid: rec.images[iid] for iid in ids}
     names = {iid: im.name for iid, im in images.items()}
     track_ref_xy = np.array([images[int(i)].points2D[int(x)].xy for i, x in ref])  # once per track, not per candidate
     n_cand = added = 0

@@ -97,8 +97,8 @@ class SfMConfig:
     # `use_track_extension`)
     track_window: int = TRACK_WINDOW  # ... in views this many frames beyond the track's first and last
     principal_point: str = "auto"  # final BA: auto (free (cx, cy) only when it clearly helps) | refine | fixed
-    ba_loss: str = "soft_l1"  # final BA's robust loss (BA_LOSSES): trivial (squared, as COLMAP's global BA) | soft_l1 | cauchy |
-    # huber. A few bad observations (mask edges, compression) pull a squared loss. Simulator, 300 frames at 640x480,
+    ba_loss: str = "soft_l1"  # final BA's robust loss (BA_LOSSES): trivial (squared, as COLMAP's global BA) |
+    # soft_l1 | cauchy | huber. A few bad observations (mask edges, compression) pull a squared loss. Simulator, 300 frames at 640x480,
     # same capture (rotation deg centre / rotation gauge, centre %): trivial 0.059 / 0.054 / 0.041, soft_l1 0.053 /
     # 0.045 / 0.031; without masks 0.458 / 0.110 / 0.117 -> 0.285 / 0.090 / 0.084; another room (seed 1) 0.109 /
     # 0.071 / 0.048 -> 0.075 / 0.050 / 0.036; fox unchanged (0.135-0.145 deg).
@@ -330,6 +330,11 @@ def use_track_refinement(cfg: SfMConfig, n: int, long_side: int) -> bool:
     return _long_dense(cfg, n, long_side) and long_side <= cfg.sfm_long_side
 
 
+def _sequential(cfg: SfMConfig, n: int) -> bool:
+    """Whether n frames are matched sequentially (+ loop detection) rather than exhaustively."""
+    return cfg.matcher == "sequential" or (cfg.matcher == "auto" and n > cfg.exhaustive_max)
+
+
 def use_track_extension(cfg: SfMConfig, n: int, long_side: int) -> bool:
     """Whether to extend tracks into the views where their point projects (`keypoints.extend_tracks`).
 
@@ -341,8 +346,7 @@ def use_track_extension(cfg: SfMConfig, n: int, long_side: int) -> bool:
     its spread."""
     if cfg.extend_tracks in ("on", "off"):
         return cfg.extend_tracks == "on"
-    sequential = cfg.matcher == "sequential" or (cfg.matcher == "auto" and n > cfg.exhaustive_max)
-    return sequential and long_side <= cfg.sfm_long_side
+    return _sequential(cfg, n) and long_side <= cfg.sfm_long_side
 
 
 def resolve_octave(cfg: SfMConfig, sample: Path) -> int:
@@ -535,7 +539,7 @@ def ladder(cfg: SfMConfig, n: int, mixed_octaves: bool = False, extended: bool =
     frames at once, since the strided way gives the fine frames' tracks fewer views, unless `extended`: the tracks
     are extended into their views before the final BA (simulator, 300 frames at 640x480: 0.038 deg and 0.016 %
     in 203 s with stride 3, 0.038 deg and 0.017 % in 217 s all at once)."""
-    if cfg.matcher == "exhaustive" or (cfg.matcher == "auto" and n <= cfg.exhaustive_max):
+    if not _sequential(cfg, n):
         base = Rung("base", "exhaustive", cfg.overlap, False, cfg.mapper)
         rungs = [base, replace(base, name="relaxed", relaxed=True)]
     else:

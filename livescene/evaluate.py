@@ -54,7 +54,9 @@ class CaptureTruth:
             cols.append(self.cap.names.index(n))
         self.frames = list(views.dataset.frames)
         self.names = list(views.names)
+        self.cols = cols
         self.states = self.cap.states[[f.index for f in self.frames]][:, cols]
+        self._renders: dict = {}
         # the dataset's cameras may live in an SfM frame (centred, scaled): truth renders use the capture's own
         # camera for each frame, and depth compares in metres through a similarity fit of the camera centres
         from interreal.scoring import umeyama
@@ -75,6 +77,68 @@ class CaptureTruth:
         rgb = self.cap.scene().render(c2w_gl, values, big).rgb
         return rgb if f == 1 else cv2.resize(rgb, (intr.w, intr.h), interpolation=cv2.INTER_AREA)
 
+    def _clean(self, i: int, states, intr: Intrinsics, cache: bool = False):
+        """The simulator's clean render (rgb, z-depth, instance) of frame i's camera at `states`, at the capture's
+        own intrinsics scaled to intr's size."""
+        key = (i, intr.w, intr.h)
+        if cache and key in self._renders:
+            return self._renders[key]
+        values = {n: float(v) for n, v in zip(self.names, np.asarray(states).ravel())}
+        out = self.cap.scene().render(self.cap.poses[self.frames[i].index], values,
+                                      self.cap.intrinsics.scaled(intr.w, intr.h))
+        if cache:
+            self._renders[key] = out
+        return out
+
+    def part_support(self, i: int, states, intr: Intrinsics, train: list[int], comparable: float = 1.5) -> dict:
+        """How training saw the moving parts that camera i shows at `states`.
+
+        Each part pixel's surface point is taken into its part's own frame (so a training frame at any state
+        can have seen it), carried to each training frame at that frame's states, and counted as seen where it
+        lands unoccluded on the same part (2 cm + 1 % of depth). `seen`: share of the part pixels some training
+        frame saw; `seen_comparable`: share seen from no more than `comparable` times this view's distance -
+        a surface seen only from three times farther (or at a grazing angle: the footprint of a pixel on the
+        surface, distance / cos(incidence), is compared) has a third of the detail this view asks for, and no
+        model can render what it never saw. `part_share`: share of the image the parts cover."""
+        from interreal.synth.consistency import project, unproject
+
+        scene = self.cap.scene()
+        parts = [next(p for p in scene.parts if p.name == n) for n in self.names]
+        cam = self._clean(i, states, intr)
+        world = unproject(self.cap.poses[self.frames[i].index], cam.depth, self.cap.intrinsics.scaled(intr.w, intr.h))
+        n_px = int(np.isin(cam.instance, np.arange(1, len(parts) + 1)).sum())
+        if n_px == 0:
+            return {"part_share": 0.0, "seen": None, "seen_comparable": None}
+        normal = np.cross(np.gradient(world, axis=1), np.gradient(world, axis=0))
+        normal /= np.linalg.norm(normal, axis=-1, keepdims=True).clip(1e-12)
+        seen_all, close_all = 0, 0
+        for o, part in enumerate(parts):
+            sel = cam.instance == o + 1
+            if not sel.any():
+                continue
+            rot, trans = part.pose(float(np.asarray(states).ravel()[o]))
+            local = (world[sel] - trans) @ rot  # the part's rest frame
+            n_local = normal[sel] @ rot
+            here = _footprint(world[sel], normal[sel], self.cap.poses[self.frames[i].index][:3, 3])
+            best = np.full(local.shape[0], np.inf)
+            for f in train:
+                ref = self._clean(f, self.states[f], intr, cache=True)
+                rf, tf = part.pose(float(self.states[f][o]))
+                pts = local @ rf.T + tf
+                pose = self.cap.poses[self.frames[f].index]
+                px, z = project(pose, pts, self.cap.intrinsics.scaled(intr.w, intr.h))
+                u, v = np.round(px[:, 0]).astype(int), np.round(px[:, 1]).astype(int)
+                ok = (z > 0) & (u >= 0) & (u < intr.w) & (v >= 0) & (v < intr.h)
+                idx = np.nonzero(ok)[0]
+                zf = ref.depth[v[idx], u[idx]]
+                hit = (np.abs(zf - z[idx]) < 0.02 + 0.01 * z[idx]) & (ref.instance[v[idx], u[idx]] == o + 1)
+                idx = idx[hit]
+                there = _footprint(pts[idx], n_local[idx] @ rf.T, pose[:3, 3])
+                best[idx] = np.minimum(best[idx], there / here[idx])
+            seen_all += int(np.isfinite(best).sum())
+            close_all += int((best <= comparable).sum())
+        return {"part_share": n_px / cam.depth.size, "seen": seen_all / n_px, "seen_comparable": close_all / n_px}
+
     @staticmethod
     def _fit(img: np.ndarray, intr: Intrinsics) -> np.ndarray:
         import cv2
@@ -94,6 +158,14 @@ class CaptureTruth:
             return self._fit(self.cap.instance(self.frames[i].index), intr)
         except Exception:  # noqa: BLE001
             return None
+
+
+def _footprint(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Size of a pixel on the surface, up to the focal length: distance / cos(incidence) (N,)."""
+    ray = points - centre
+    dist = np.linalg.norm(ray, axis=-1)
+    cos = np.abs((ray * normals).sum(-1)) / dist.clip(1e-12)
+    return dist / cos.clip(0.05)
 
 
 def ssim(a: np.ndarray, b: np.ndarray) -> float:
@@ -227,13 +299,15 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
     if truth is not None and hasattr(truth, "render") and novel > 0 and m:
         rng = np.random.default_rng(seed)
         train_states = truth.states[views.train]
-        scores, dists, base = [], [], []
+        scores, dists, base, support = [], [], [], []
         novel_cams = pick_frames(views.held_out, novel)
         for i in tqdm(novel_cams, desc="eval novel states", disable=not progress):
             intr = view_intrinsics(views, i, scale)
             st, d = novel_states(train_states, rng)
             scores.append(state_psnr(run, truth, i, st, intr))
             dists.append(d)
+            if hasattr(truth, "part_support"):
+                support.append(truth.part_support(i, st, intr, views.train))
             # the same camera at the frame's true states, against the same renderer: separates "new state"
             # from "simulator render vs recorded frame"
             base.append(state_psnr(run, truth, i, truth.states[i], intr))
@@ -242,6 +316,8 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
         result["novel_state_distance"] = float(np.mean(dists))
         result["novel_frames"] = [{"frame": views.dataset.frames[i].fid, "psnr": sc, "true_state_psnr": b}
                                   for i, sc, b in zip(novel_cams, scores, base)]
+        for rec, sup in zip(result["novel_frames"], support):
+            rec["parts"] = sup  # how training saw the parts this view shows (CaptureTruth.part_support)
         # composition: new combinations of states each seen from near the camera
         centres = np.asarray(views.c2w_gl)[:, :3, 3]
         comp = []

@@ -79,8 +79,9 @@ class CaptureTruth:
 
     def _clean(self, i: int, states, intr: Intrinsics, cache: bool = False):
         """The simulator's clean render (rgb, z-depth, instance) of frame i's camera at `states`, at the capture's
-        own intrinsics scaled to intr's size."""
-        key = (i, intr.w, intr.h)
+        own intrinsics scaled to intr's size; `cache` keeps it (part_support reads every training frame once per
+        novel view)."""
+        key = (i, intr.w, intr.h, tuple(np.round(np.asarray(states, float).ravel(), 6)))
         if cache and key in self._renders:
             return self._renders[key]
         values = {n: float(v) for n, v in zip(self.names, np.asarray(states).ravel())}

@@ -54,7 +54,6 @@ class CaptureTruth:
             cols.append(self.cap.names.index(n))
         self.frames = list(views.dataset.frames)
         self.names = list(views.names)
-        self.cols = cols
         self.states = self.cap.states[[f.index for f in self.frames]][:, cols]
         self._renders: dict = {}
         # the dataset's cameras may live in an SfM frame (centred, scaled): truth renders use the capture's own
@@ -71,11 +70,13 @@ class CaptureTruth:
         import cv2
 
         f = max(1, min(4, int(round(self.cap.intrinsics.w / intr.w))))
-        big = self.cap.intrinsics.scaled(intr.w * f, intr.h * f)
-        c2w_gl = self.cap.poses[self.frames[i].index]
-        values = {n: float(v) for n, v in zip(self.names, np.asarray(states).ravel())}
-        rgb = self.cap.scene().render(c2w_gl, values, big).rgb
+        rgb = self._scene_render(i, states, self.cap.intrinsics.scaled(intr.w * f, intr.h * f)).rgb
         return rgb if f == 1 else cv2.resize(rgb, (intr.w, intr.h), interpolation=cv2.INTER_AREA)
+
+    def _scene_render(self, i: int, states, cap_intr: Intrinsics):
+        """The simulator's render (rgb, z-depth, instance) of frame i's own camera at `states` with cap_intr."""
+        values = {n: float(v) for n, v in zip(self.names, np.asarray(states).ravel())}
+        return self.cap.scene().render(self.cap.poses[self.frames[i].index], values, cap_intr)
 
     def _clean(self, i: int, states, intr: Intrinsics, cache: bool = False):
         """The simulator's clean render (rgb, z-depth, instance) of frame i's camera at `states`, at the capture's
@@ -84,9 +85,7 @@ class CaptureTruth:
         key = (i, intr.w, intr.h, tuple(np.round(np.asarray(states, float).ravel(), 6)))
         if cache and key in self._renders:
             return self._renders[key]
-        values = {n: float(v) for n, v in zip(self.names, np.asarray(states).ravel())}
-        out = self.cap.scene().render(self.cap.poses[self.frames[i].index], values,
-                                      self.cap.intrinsics.scaled(intr.w, intr.h))
+        out = self._scene_render(i, states, self.cap.intrinsics.scaled(intr.w, intr.h))
         if cache:
             self._renders[key] = out
         return out
@@ -103,10 +102,12 @@ class CaptureTruth:
         model can render what it never saw. `part_share`: share of the image the parts cover."""
         from interreal.synth.consistency import project, unproject
 
-        scene = self.cap.scene()
-        parts = [next(p for p in scene.parts if p.name == n) for n in self.names]
+        parts = [next(p for p in self.cap.scene().parts if p.name == n) for n in self.names]
+        states = np.asarray(states, float).ravel()
+        cap_intr = self.cap.intrinsics.scaled(intr.w, intr.h)
+        centre = self.cap.poses[self.frames[i].index][:3, 3]
         cam = self._clean(i, states, intr)
-        world = unproject(self.cap.poses[self.frames[i].index], cam.depth, self.cap.intrinsics.scaled(intr.w, intr.h))
+        world = unproject(self.cap.poses[self.frames[i].index], cam.depth, cap_intr)
         n_px = int(np.isin(cam.instance, np.arange(1, len(parts) + 1)).sum())
         if n_px == 0:
             return {"part_share": 0.0, "seen": None, "seen_comparable": None}
@@ -117,17 +118,17 @@ class CaptureTruth:
             sel = cam.instance == o + 1
             if not sel.any():
                 continue
-            rot, trans = part.pose(float(np.asarray(states).ravel()[o]))
+            rot, trans = part.pose(float(states[o]))
             local = (world[sel] - trans) @ rot  # the part's rest frame
             n_local = normal[sel] @ rot
-            here = _footprint(world[sel], normal[sel], self.cap.poses[self.frames[i].index][:3, 3])
+            here = _footprint(world[sel], normal[sel], centre)
             best = np.full(local.shape[0], np.inf)
             for f in train:
                 ref = self._clean(f, self.states[f], intr, cache=True)
                 rf, tf = part.pose(float(self.states[f][o]))
                 pts = local @ rf.T + tf
                 pose = self.cap.poses[self.frames[f].index]
-                px, z = project(pose, pts, self.cap.intrinsics.scaled(intr.w, intr.h))
+                px, z = project(pose, pts, cap_intr)
                 u, v = np.round(px[:, 0]).astype(int), np.round(px[:, 1]).astype(int)
                 ok = (z > 0) & (u >= 0) & (u < intr.w) & (v >= 0) & (v < intr.h)
                 idx = np.nonzero(ok)[0]

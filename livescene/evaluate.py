@@ -1,5 +1,6 @@
 """`livescene eval`: held-out PSNR / SSIM, depth L1, state MAE on unlabelled frames, mask IoU of the
-probability field, and novel-state PSNR against a simulator that can render any (camera, states) pair.
+probability field, and novel-state PSNR against a simulator that can render any (camera, states) pair (with,
+per novel-state view, the mask IoU there - who owns the space at the new states - and how training saw its parts).
 
 Held-out frames are the trainer's split (every 8th frame, never trained on). Truth comes from a simulated
 capture (`--gt DIR`: gt/states.json, gt/depth, gt/instance, and its scene for novel states), whose world frame
@@ -35,6 +36,9 @@ class Truth(Protocol):
     def depth(self, i: int, intr: Intrinsics) -> np.ndarray | None: ...  # z-depth metres, 0 = none
 
     def instance(self, i: int, intr: Intrinsics) -> np.ndarray | None: ...  # 0 bg, k obj k-1, 255 ignore
+
+    # optional: frame i's true camera at any states, as `instance` (scores who owns what at a novel state)
+    def state_instance(self, i: int, states: np.ndarray, intr: Intrinsics) -> np.ndarray | None: ...
 
 
 class CaptureTruth:
@@ -141,6 +145,9 @@ class CaptureTruth:
             close_all += int((best <= comparable).sum())
         return {"part_share": n_px / cam.depth.size, "seen": seen_all / n_px, "seen_comparable": close_all / n_px}
 
+    def state_instance(self, i, states, intr):
+        return self._clean(i, states, intr).instance
+
     @staticmethod
     def _fit(img: np.ndarray, intr: Intrinsics) -> np.ndarray:
         import cv2
@@ -205,12 +212,17 @@ def view_intrinsics(views, i: int, scale: float) -> Intrinsics:
     return intr.scaled(max(1, round(intr.w * scale)), max(1, round(intr.h * scale)))
 
 
-def state_psnr(run, truth: Truth, i: int, states: np.ndarray, intr: Intrinsics) -> float:
-    """PSNR of the run against the simulator, frame i's camera, both at the given states."""
+def state_scores(run, truth: Truth, i: int, states: np.ndarray, intr: Intrinsics) -> dict[str, float | None]:
+    """The run against the simulator, frame i's camera, both at the given states: `psnr`, and `mask_iou` of the
+    probability field against the simulator's instances there (None when the truth has none) - a novel-state view
+    can fail by drawing a part badly or by giving its space to another owner (the background), and only this
+    tells them apart."""
     ref = truth.render(i, states, intr).astype(np.float32) / 255.0
     views = run.views
     out = render_view(run, views.c2w_gl[i], intr, np.asarray(states, np.float32), time=float(views.times[i]))
-    return psnr(np.mean((out["rgb"] - ref) ** 2))
+    inst = truth.state_instance(i, states, intr) if hasattr(truth, "state_instance") else None
+    return {"psnr": psnr(np.mean((out["rgb"] - ref) ** 2)),
+            "mask_iou": None if inst is None else mask_iou(out["probs"], inst, run.model.n_objects)}
 
 
 def novel_states(train_states: np.ndarray, rng: np.random.Generator, tries: int = 200) -> tuple[np.ndarray, float]:
@@ -301,23 +313,28 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
     if truth is not None and hasattr(truth, "render") and novel > 0 and m:
         rng = np.random.default_rng(seed)
         train_states = truth.states[views.train]
-        scores, dists, base, support = [], [], [], []
+        scores, dists, base, support, novel_picks = [], [], [], [], []
         novel_cams = pick_frames(views.held_out, novel)
         for i in tqdm(novel_cams, desc="eval novel states", disable=not progress):
             intr = view_intrinsics(views, i, scale)
             st, d = novel_states(train_states, rng)
-            scores.append(state_psnr(run, truth, i, st, intr))
+            novel_picks.append(st)
+            scores.append(state_scores(run, truth, i, st, intr))
             dists.append(d)
             if hasattr(truth, "part_support"):
                 support.append(truth.part_support(i, st, intr, views.train))
             # the same camera at the frame's true states, against the same renderer: separates "new state"
             # from "simulator render vs recorded frame"
-            base.append(state_psnr(run, truth, i, truth.states[i], intr))
-        result["novel_state_psnr"] = float(np.mean(scores))
-        result["true_state_sim_psnr"] = float(np.mean(base))
+            base.append(state_scores(run, truth, i, truth.states[i], intr))
+        result["novel_state_psnr"] = float(np.mean([sc["psnr"] for sc in scores]))
+        result["true_state_sim_psnr"] = float(np.mean([b["psnr"] for b in base]))
+        ious = [sc["mask_iou"] for sc in scores if sc["mask_iou"] is not None]
+        result["novel_state_mask_iou"] = float(np.mean(ious)) if ious else None
         result["novel_state_distance"] = float(np.mean(dists))
-        result["novel_frames"] = [{"frame": views.dataset.frames[i].fid, "psnr": sc, "true_state_psnr": b}
-                                  for i, sc, b in zip(novel_cams, scores, base)]
+        result["novel_frames"] = [{"frame": views.dataset.frames[i].fid, "states": [round(float(v), 3) for v in st],
+                                   "psnr": sc["psnr"], "true_state_psnr": b["psnr"], "mask_iou": sc["mask_iou"],
+                                   "true_state_mask_iou": b["mask_iou"]}
+                                  for i, st, sc, b in zip(novel_cams, novel_picks, scores, base)]
         for rec, sup in zip(result["novel_frames"], support):
             rec["parts"] = sup  # how training saw the parts this view shows (CaptureTruth.part_support)
         # composition: new combinations of states each seen from near the camera
@@ -330,7 +347,7 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
             intr = view_intrinsics(views, i, scale)
             st, d = pick
             comp.append({"frame": views.dataset.frames[i].fid, "states": [round(float(v), 3) for v in st],
-                         "distance": round(d, 3), "psnr": state_psnr(run, truth, i, st, intr)})
+                         "distance": round(d, 3), "psnr": state_scores(run, truth, i, st, intr)["psnr"]})
         result["composition_frames"] = comp
         result["composition_psnr"] = float(np.mean([c["psnr"] for c in comp])) if comp else None
     result["frames"] = per_frame

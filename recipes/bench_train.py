@@ -28,8 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchlib import bench_args, print_table, write_results  # noqa: E402
 
 # evaluation figures copied into a run record (a re-evaluation replaces exactly these)
-EVAL_KEYS = ("psnr", "ssim", "state_mae", "novel_state_psnr", "true_state_sim_psnr", "composition_psnr", "novel_frames",
-             "composition_frames", "mask_iou", "depth_l1")
+EVAL_KEYS = ("psnr", "ssim", "state_mae", "novel_state_psnr", "true_state_sim_psnr", "novel_state_mask_iou",
+             "composition_psnr", "novel_frames", "composition_frames", "mask_iou", "depth_l1")
 COLUMNS = ["data", "variant", "minutes", "steps", "psnr", "ssim", "state_mae", "novel_state_psnr", "mask_iou",
            "params", "label_fraction"]
 

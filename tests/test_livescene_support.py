@@ -53,3 +53,18 @@ def test_points_are_carried_in_the_part_frame(truth):
     far = int(np.argmax(np.linalg.norm(centres - centres[i], axis=1)))
     other = tr.part_support(i, tr.states[i], intr, [far])
     assert other["seen_comparable"] <= other["seen"] < 0.2  # 3 % and 0.5 % measured from the far end of the path
+
+
+def test_state_instance_follows_the_states(truth):
+    """Instances of a frame's own camera at any states: at its own states they are the recorded ones, and moving
+    the door moves its pixels (novel-state views are scored for ownership against these)."""
+    tr, views = truth
+    i = _door_frame(tr, views)
+    intr = views.intrinsics[i]
+    own = tr.state_instance(i, tr.states[i], intr)
+    assert own.shape == (intr.h, intr.w) and (own == 1).mean() > 0.05
+    assert (own == tr.instance(i, intr)).mean() > 0.97
+    st = tr.states[i].copy()
+    st[0] = 1.0 - round(float(st[0]))
+    moved = tr.state_instance(i, st, intr)
+    assert ((own == 1) != (moved == 1)).mean() > 0.05

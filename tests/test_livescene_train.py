@@ -203,6 +203,31 @@ def test_eval_with_truth(trained, tmp_path):
     assert res["psnr"] > 20 and 0 < res["ssim"] <= 1
     assert res["state_mae"] < 0.15 and res["mask_iou"] > 0.5
     assert res["novel_state_psnr"] > 18 and res["depth_l1"] < 1.0
+    assert res["novel_state_mask_iou"] is None  # this truth cannot say who owns what at other states
+
+    class StateTruth(Truth):
+        def state_instance(self, i, st, intr):
+            return scene.render(run.views.c2w_gl[i], st, intr)[2]
+
+    res = evaluate(run, StateTruth(), novel=2, progress=False)
+    assert res["novel_state_mask_iou"] > 0.5
+    for rec in res["novel_frames"]:
+        assert len(rec["states"]) == 1 and rec["mask_iou"] > 0.3 and rec["true_state_mask_iou"] > 0.3
+
+    # scored on the probabilities rendered at the novel states, not at the frame's own
+    from livescene.evaluate import mask_iou
+    from livescene.render import render_view
+
+    rec = res["novel_frames"][0]
+    i = [f.fid for f in run.views.dataset.frames].index(rec["frame"])
+    intr, st = run.views.intrinsics[i], np.asarray(rec["states"], np.float32)
+    inst = scene.render(run.views.c2w_gl[i], st, intr)[2]
+
+    def iou_at(values) -> float:
+        return mask_iou(render_view(run, run.views.c2w_gl[i], intr, values, time=float(run.views.times[i]))["probs"],
+                        inst, 1)
+
+    assert abs(rec["mask_iou"] - iou_at(st)) < 1e-6 and iou_at(states[i]) != rec["mask_iou"]
 
 
 def test_nan_rolls_back_then_stops(tmp_path, monkeypatch):

@@ -164,6 +164,14 @@ class Views:
                          n_frames=len(self.times))
 
 
+def nearest_views(centres: np.ndarray, train: list[int], centre: np.ndarray, near: int = 0) -> np.ndarray:
+    """Positions of the `near` training frames (default: a tenth of them, at least 8) whose cameras stand closest
+    to `centre`: the views that can have shown a part from where a camera there looks at it. centres (N, 3)."""
+    tr = np.asarray(train)
+    near = near or max(8, len(tr) // 10)
+    return tr[np.argsort(np.linalg.norm(centres[tr] - centre, axis=1))[:near]]
+
+
 def working_size(intr: Intrinsics, image_hw: tuple[int, int], max_side: int) -> tuple[int, int]:
     h, w = image_hw
     if max_side and max(w, h) > max_side:

@@ -13,15 +13,14 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
-import torch
 
 from interreal import atomic
 from interreal.dataset import Intrinsics
 
-from .data import load_frame
+from .data import load_frame, nearest_views
 from .errors import LiveSceneError
 from .losses import psnr
-from .render import render_view
+from .render import learned_frame_states, render_view
 
 
 class Truth(Protocol):
@@ -246,8 +245,7 @@ def composition_states(states: np.ndarray, centres: np.ndarray, train: list[int]
     this side (an extrapolation no data supports). states (N, M); centres (N, 3) camera centres."""
     m = states.shape[1]
     tr = np.asarray(train)
-    near = near or max(8, len(tr) // 10)
-    close = tr[np.argsort(np.linalg.norm(centres[tr] - centres[i], axis=1))[:near]]
+    close = nearest_views(centres, train, centres[i], near)
     options = []
     for o in range(m):
         seen = np.unique(np.round(states[close, o] * 20) / 20)
@@ -301,8 +299,7 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
                               "depth_l1": mean("depth_l1"), "reject_threshold": run.model.cfg.reject_threshold,
                               "params": run.model.param_count()}
     # states on frames without labels
-    with torch.no_grad():
-        learned = run.model.frame_values(torch.as_tensor(views.times, device=run.device))[:, :m].cpu().numpy()
+    learned = learned_frame_states(run)
     labels, given = views.dataset.label_matrix()
     result["state_mae_labelled"] = float(np.abs(learned - labels)[given].mean()) if given.any() else None
     if truth is not None and m:

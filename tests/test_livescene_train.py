@@ -174,6 +174,40 @@ def test_render_cli_sweep_video_and_maps(trained, tmp_path):
     assert main(["render", str(run_dir), "--state", "nosuch=1", "--device", "cpu"]) == 2
 
 
+
+@pytest.mark.slow
+def test_render_warns_of_states_never_seen_near_the_camera(trained, capsys):
+    """A state that no training view near the camera showed is named (with what those views showed); one they
+    showed is not; the CLI prints the warning and still renders."""
+    from livescene.cli import main
+    from livescene.data import nearest_views
+    from livescene.render import learned_frame_states, unseen_states, warn_unseen
+
+    ds, run_dir, _ = trained
+    run = load_run(run_dir, device="cpu")
+    learned = learned_frame_states(run)
+    views = run.views
+    i = views.held_out[0]
+    seen = learned[nearest_views(views.c2w_gl[:, :3, 3], views.train, views.c2w_gl[i][:3, 3]), 0]
+    grid = np.linspace(0, 1, 101)
+    gap = np.abs(grid[:, None] - seen[None]).min(1)
+    far, d = float(grid[gap.argmax()]), float(gap.max())
+    # the toy's door moves while the camera moves: some states were only seen from elsewhere (0.21 away)
+    assert d > 0.15
+    hit = unseen_states(run, learned, views.c2w_gl[i], {"door": far}, tol=d / 2)
+    assert hit["door"] == pytest.approx(seen[np.abs(seen - far).argmin()])
+    assert unseen_states(run, learned, views.c2w_gl[i], {"door": far}, tol=d + 0.01) == {}
+    assert unseen_states(run, learned, views.c2w_gl[i], {"door": float(seen[0])}, tol=0.01) == {}
+    assert unseen_states(run, learned, views.c2w_gl[i], {"nosuch": 0.5}) == {}  # render_view names it
+    jobs = [{"c2w": views.c2w_gl[i], "states": None}] * 2
+    msgs = warn_unseen(run, jobs, {"door": far}, tol=d / 2)
+    assert len(msgs) == 1 and "'door'" in msgs[0] and "2 of 2 renders" in msgs[0]
+    capsys.readouterr()
+    assert main(["render", str(run_dir), "--frames", str(i), "--state", f"door={far}", "--out",
+                 str(run_dir / "warned"), "--device", "cpu"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: 'door'" in err and "1 of 1 renders" in err and (run_dir / "warned").is_dir()
+
 @pytest.mark.slow
 def test_eval_with_truth(trained, tmp_path):
     from livescene.evaluate import evaluate

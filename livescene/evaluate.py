@@ -310,30 +310,28 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
     if truth is not None and hasattr(truth, "render") and novel > 0 and m:
         rng = np.random.default_rng(seed)
         train_states = truth.states[views.train]
-        scores, dists, base, support, novel_picks = [], [], [], [], []
+        records, dists = [], []
         novel_cams = pick_frames(views.held_out, novel)
         for i in tqdm(novel_cams, desc="eval novel states", disable=not progress):
             intr = view_intrinsics(views, i, scale)
             st, d = novel_states(train_states, rng)
-            novel_picks.append(st)
-            scores.append(state_scores(run, truth, i, st, intr))
             dists.append(d)
-            if hasattr(truth, "part_support"):
-                support.append(truth.part_support(i, st, intr, views.train))
+            sc = state_scores(run, truth, i, st, intr)
             # the same camera at the frame's true states, against the same renderer: separates "new state"
             # from "simulator render vs recorded frame"
-            base.append(state_scores(run, truth, i, truth.states[i], intr))
-        result["novel_state_psnr"] = float(np.mean([sc["psnr"] for sc in scores]))
-        result["true_state_sim_psnr"] = float(np.mean([b["psnr"] for b in base]))
-        ious = [sc["mask_iou"] for sc in scores if sc["mask_iou"] is not None]
+            b = state_scores(run, truth, i, truth.states[i], intr)
+            rec = {"frame": views.dataset.frames[i].fid, "states": [round(float(v), 3) for v in st],
+                   "psnr": sc["psnr"], "true_state_psnr": b["psnr"], "mask_iou": sc["mask_iou"],
+                   "true_state_mask_iou": b["mask_iou"]}
+            if hasattr(truth, "part_support"):  # how training saw the parts this view shows
+                rec["parts"] = truth.part_support(i, st, intr, views.train)
+            records.append(rec)
+        result["novel_state_psnr"] = float(np.mean([r["psnr"] for r in records]))
+        result["true_state_sim_psnr"] = float(np.mean([r["true_state_psnr"] for r in records]))
+        ious = [r["mask_iou"] for r in records if r["mask_iou"] is not None]
         result["novel_state_mask_iou"] = float(np.mean(ious)) if ious else None
         result["novel_state_distance"] = float(np.mean(dists))
-        result["novel_frames"] = [{"frame": views.dataset.frames[i].fid, "states": [round(float(v), 3) for v in st],
-                                   "psnr": sc["psnr"], "true_state_psnr": b["psnr"], "mask_iou": sc["mask_iou"],
-                                   "true_state_mask_iou": b["mask_iou"]}
-                                  for i, st, sc, b in zip(novel_cams, novel_picks, scores, base)]
-        for rec, sup in zip(result["novel_frames"], support):
-            rec["parts"] = sup  # how training saw the parts this view shows (CaptureTruth.part_support)
+        result["novel_frames"] = records
         # composition: new combinations of states each seen from near the camera
         centres = np.asarray(views.c2w_gl)[:, :3, 3]
         comp = []

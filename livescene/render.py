@@ -45,6 +45,9 @@ def resolve_states(run, states: StateSpec, time: float = 0.0) -> np.ndarray:
     return np.clip(arr, 0, 1)
 
 
+UNSEEN_TOL = 0.15  # a state this far from every state the nearby training views showed was not seen from there
+
+
 def learned_frame_states(run) -> np.ndarray:
     """(N, M) the states the run learned for every dataset frame (labels where given, the variable elsewhere)."""
     with torch.no_grad():
@@ -53,7 +56,7 @@ def learned_frame_states(run) -> np.ndarray:
 
 
 def unseen_states(run, learned: np.ndarray, c2w_gl: np.ndarray, states: Mapping[str, float],
-                  tol: float = 0.15) -> dict[str, float]:
+                  tol: float = UNSEEN_TOL) -> dict[str, float]:
     """Objects set to a state that no training view near this camera showed (within `tol`) -> the nearest state
     those views did show. Such a part is drawn from a side the capture never saw it at that state, and the field
     does not carry a surface across states and sides: expect it blurred or missing (on the benchmark, a camera
@@ -72,7 +75,8 @@ def unseen_states(run, learned: np.ndarray, c2w_gl: np.ndarray, states: Mapping[
     return out
 
 
-def warn_unseen(run, jobs: list[dict[str, Any]], base_states: Mapping[str, float], tol: float = 0.15) -> list[str]:
+def warn_unseen(run, jobs: list[dict[str, Any]], base_states: Mapping[str, float],
+                tol: float = UNSEEN_TOL) -> list[str]:
     """One warning per object that some camera renders at a state never seen from near it (`unseen_states`)."""
     learned = learned_frame_states(run)
     found: dict[str, list[tuple[float, float]]] = {}

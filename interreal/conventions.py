@@ -7,6 +7,9 @@
   (the `--keyframes` PNG format; 255 = not annotated).
 - Camera axes: OpenCV inside the code (x right, y down, looking along +z);
   OpenGL in transforms.json (x right, y up, looking along -z). Convert only at the edges.
+- Part motions (`articulation.json`, optional): in transforms.json's world frame and units; an object's rest pose is
+  its pose at state 0, and state s turns a hinge by s * range radians about its axis through its origin
+  (right-hand rule) or moves a slide by s * range world units along its axis.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ TRANSFORMS_FILE = "transforms.json"
 MAPPING_FILE = "mapping.yaml"
 LABELS_FILE = "key_frame_value.yaml"
 PROMPTS_FILE = "prompts.yaml"
+ARTICULATION_FILE = "articulation.json"
 UNANNOTATED = 255  # keyframe index-mask value for "not annotated"
 
 

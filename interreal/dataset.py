@@ -18,6 +18,7 @@ import yaml
 
 from . import atomic
 from .conventions import (
+    ARTICULATION_FILE,
     IMAGES_DIR,
     LABELS_FILE,
     MAPPING_FILE,
@@ -113,6 +114,53 @@ class Frame:
         return Path(self.file_path).stem
 
 
+MOTION_KINDS = ("hinge", "slide")
+
+
+@dataclass
+class Articulation:
+    """How one object moves with its state (conventions: `articulation.json`): a hinge turns by s * range radians
+    about `axis` through `origin` (right-hand rule), a slide moves s * range world units along `axis`; state 0 is
+    the rest pose. `extra` keeps what the estimate measured (residuals, support) for reports."""
+
+    kind: str
+    axis: np.ndarray  # (3,) unit
+    origin: np.ndarray  # (3,) a point on a hinge's axis (unused by a slide)
+    range: float
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def pose(self, s: float) -> tuple[np.ndarray, np.ndarray]:
+        """(R, t) taking a rest-pose point p to R @ p + t at state s."""
+        if self.kind == "slide":
+            return np.eye(3), self.axis * (s * self.range)
+        a = self.axis
+        k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+        th = s * self.range
+        rot = np.eye(3) + np.sin(th) * k + (1 - np.cos(th)) * (k @ k)
+        return rot, self.origin - rot @ self.origin
+
+    def to_json(self) -> dict[str, Any]:
+        return {"type": self.kind, "axis": [float(v) for v in self.axis],
+                "origin": [float(v) for v in self.origin], "range": float(self.range), **self.extra}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any], where: str = "articulation") -> "Articulation":
+        try:
+            kind = str(d["type"])
+            axis = np.asarray(d["axis"], dtype=np.float64).reshape(3)
+            origin = np.asarray(d.get("origin", [0.0, 0.0, 0.0]), dtype=np.float64).reshape(3)
+            rng = float(d["range"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DatasetError(f"{where}: needs type, axis (3 numbers), origin (3 numbers) and range ({exc})") from exc
+        norm = float(np.linalg.norm(axis))
+        if kind not in MOTION_KINDS:
+            raise DatasetError(f"{where}: type {kind!r} is not one of {MOTION_KINDS}")
+        if not (np.isfinite(axis).all() and np.isfinite(origin).all() and math.isfinite(rng)) or norm < 1e-9:
+            raise DatasetError(f"{where}: axis, origin and range must be finite and the axis non-zero")
+        extra = {k: v for k, v in d.items() if k not in ("type", "axis", "origin", "range")}
+        return cls(kind, axis / norm, origin, rng, extra)
+
+
 @dataclass
 class LiveSceneDataset:
     root: Path
@@ -123,6 +171,7 @@ class LiveSceneDataset:
     prompts: dict[str, str] = field(default_factory=dict)
     layout: str = "nerfstudio"  # or "blender"
     extra: dict[str, Any] = field(default_factory=dict)  # other top-level transforms.json keys
+    articulation: dict[str, Articulation] = field(default_factory=dict)  # object name -> motion (optional file)
 
     @property
     def object_names(self) -> list[str]:
@@ -225,6 +274,41 @@ def read_prompts(root: str | Path) -> dict[str, str]:
     return {str(k): str(v) for k, v in raw.items()} if isinstance(raw, dict) else {}
 
 
+def known_states(times: np.ndarray, labels: np.ndarray, given: np.ndarray, tol: float = 0.02
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(states, known) (N, M) from the labels alone: labelled frames, and frames between two labelled frames (in
+    `times` order) whose labels agree within `tol` (the object was held still between them). labels, given (N, M)
+    as `label_matrix` gives them."""
+    states = np.where(given, labels, 0.0).astype(np.float64)
+    known = given.copy()
+    order = np.argsort(times, kind="stable")
+    for o in range(labels.shape[1]):
+        marked = [p for p, i in enumerate(order) if given[i, o]]
+        for a, b in zip(marked[:-1], marked[1:]):
+            la, lb = labels[order[a], o], labels[order[b], o]
+            if abs(la - lb) <= tol:
+                between = order[a + 1: b]
+                states[between, o] = 0.5 * (la + lb)
+                known[between, o] = True
+    return states, known
+
+
+def read_articulation(root: str | Path) -> dict[str, Articulation]:
+    """Object name -> motion from `articulation.json` ({} when the file is absent)."""
+    path = Path(root) / ARTICULATION_FILE
+    if not path.exists():
+        return {}
+    try:
+        raw = json.loads(path.read_text())
+    except (OSError, ValueError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path} is not valid JSON ({exc}); re-run `interreal motions`") from exc
+    objects = raw.get("objects") if isinstance(raw, dict) else None
+    if not isinstance(objects, dict):
+        raise DatasetError(f"{path}: expected {{\"objects\": {{name: {{type, axis, origin, range}}}}}}")
+    return {str(n): Articulation.from_json(d if isinstance(d, dict) else {}, f"{path.name}[{n}]")
+            for n, d in objects.items()}
+
+
 def _matrix(value: Any) -> np.ndarray:
     m = np.asarray(value, dtype=np.float64)
     if m.shape == (3, 4):
@@ -291,7 +375,7 @@ def load_dataset(root: str | Path) -> LiveSceneDataset:
         frames.sort(key=lambda f: f.file_path)
     return LiveSceneDataset(
         root=root, frames=frames, intrinsics=intr, mapping=read_mapping(root), labels=read_labels(root),
-        prompts=read_prompts(root), layout=layout, extra=extra,
+        prompts=read_prompts(root), layout=layout, extra=extra, articulation=read_articulation(root),
     )
 
 
@@ -335,6 +419,13 @@ def write_labels(root: str | Path, labels: dict[str, dict[str, float]]) -> None:
 
 def write_prompts(root: str | Path, prompts: dict[str, str]) -> None:
     atomic.write_yaml(Path(root) / PROMPTS_FILE, dict(prompts))
+
+
+def write_articulation(root: str | Path, motions: dict[str, Articulation], extra: dict | None = None) -> Path:
+    """Write `articulation.json` (objects in the order given; `extra`: top-level provenance keys)."""
+    path = Path(root) / ARTICULATION_FILE
+    atomic.write_json(path, {**(extra or {}), "objects": {n: m.to_json() for n, m in motions.items()}})
+    return path
 
 
 def write_mask(root: str | Path, fid: str, onehot: np.ndarray) -> None:
@@ -403,6 +494,7 @@ def validate(root: str | Path, check_masks: bool = True) -> ValidationResult:
         _validate_masks(root, frames, mapping, sizes, add)
     summary["masks"] = bool(frames) and all(mask_file(root, fid).exists() for fid, _ in frames)
     summary["poses"] = sum(1 for _, e in frames if "transform_matrix" in e)
+    summary["articulated"] = _validate_articulation(root, mapping, add)
     _validate_reports(root, add)
     return ValidationResult(root, problems, summary)
 
@@ -661,6 +753,22 @@ def _validate_masks(root: Path, frames, mapping: dict[int, str], sizes: dict[str
         if bad:
             ys, xs = np.nonzero(count != 1)
             add("mask-not-onehot", path, f"{bad} pixels do not have exactly one channel set (first at x={xs[0]}, y={ys[0]})")
+
+
+def _validate_articulation(root: Path, mapping: dict[int, str], add) -> list[str]:
+    """Objects with a motion in the optional `articulation.json` (each must name an object of mapping.yaml)."""
+    if not (root / ARTICULATION_FILE).exists():
+        return []
+    try:
+        motions = read_articulation(root)
+    except DatasetError as exc:
+        add("bad-articulation", root / ARTICULATION_FILE, str(exc))
+        return []
+    names = set(mapping.values())
+    for name in motions:
+        if mapping and name not in names:
+            add("bad-articulation", root / ARTICULATION_FILE, f"object {name!r} is not in mapping.yaml ({sorted(names)})")
+    return [n for n in motions if n in names]
 
 
 def _validate_reports(root: Path, add) -> None:

@@ -51,6 +51,11 @@ class ModelConfig:
     # sharp (closed fridge door 0.42 -> 0.96 on its surface) and draws the closed door at novel states from the
     # side where it was only seen open, but in a 15-minute run its held-out PSNR, state MAE and mask IoU were lower
     # (30.3 / 0.039 / 0.870 against 30.6 / 0.024 / 0.889), so it is not the default
+    motion: str = "auto"  # rigid part motions (`articulation.json`, `interreal motions`): "auto" = rigid when the
+    # dataset has them, "rigid" = required, "none" = the k-axis alone moves parts (the paper's model)
+    part_k: str = "rest"  # what a rigid part's samples read on the k axis: "rest" = k 0 at every state (one
+    # appearance, moved by the motion), "state" = its state (appearance may also change with the state)
+    motion_grad: bool = False  # the colour and mask losses reach the per-frame states through the motions too
     background: str = "white"  # white | black | learned
     capacity: float = 1.0  # multiplies the auto resolutions (capacity sweeps)
     max_resolution: int = 256  # cap for the finest auto spatial resolution

@@ -4,20 +4,26 @@ fields, and the learnable per-frame variable that gives each frame's object stat
 
 Coordinates given to the fields are normalised to [-1, 1] by the scene box; k is in [0, 1] (mapped to [-1, 1]).
 Object slots are fixed (`max_objects`) so the parameter count does not depend on the scene's object count;
-the background is the last probability slot.
+the background is the last probability slot. With rigid part motions (`model.motion`, `livescene.articulation`)
+a moving part's samples are read in its rest frame: `LiveSceneModel.place` decides, per sample, who owns it and
+where the fields read it.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .articulation import PartMotions
 from .config import ModelConfig
 from .errors import LiveSceneError
 
+MOTION_MODES = ("auto", "rigid", "none")
+GATED_LOGIT = -30.0  # a rigid part's logit outside its hull: probability ~1e-13, yet a finite weighted sum
 BACKGROUND_K = -1.0  # k of samples that belong to no object: not a state; KPlanes reads it from a node of its own
 
 
@@ -206,6 +212,22 @@ class FrameVariable(nn.Module):
         return torch.sigmoid(self.net(self.embed(t)))
 
 
+def normalise(pts: torch.Tensor, box: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    """World points (..., 3) -> field coordinates in [-1, 1] of the scene box (lo, hi)."""
+    lo, hi = box
+    return ((pts - lo) * (2.0 / (hi - lo)) - 1.0).clamp(-1, 1)
+
+
+@dataclass
+class Placement:
+    """Where the fields read each sample: its owner's frame (the world, or a rigid part's rest frame)."""
+
+    xyz: torch.Tensor  # (N, 3) field coordinates
+    dirs: torch.Tensor  # (N, 3) view directions in the same frame
+    k: torch.Tensor  # (N,) interaction value read on the k axis (< 0: the background slice)
+    logits: torch.Tensor  # (N, max_objects + 1) ownership logits, background last
+
+
 class LiveSceneModel(nn.Module):
     def __init__(self, cfg: ModelConfig, n_objects: int):
         super().__init__()
@@ -216,14 +238,20 @@ class LiveSceneModel(nn.Module):
             raise LiveSceneError(f"model.background_k must be 'slice' or 'zero', not {cfg.background_k!r}")
         if cfg.mask_render not in ("probs", "logits"):
             raise LiveSceneError(f"model.mask_render must be 'probs' or 'logits', not {cfg.mask_render!r}")
+        if cfg.motion not in MOTION_MODES:
+            raise LiveSceneError(f"model.motion must be one of {MOTION_MODES}, not {cfg.motion!r}")
+        if cfg.part_k not in ("rest", "state"):
+            raise LiveSceneError(f"model.part_k must be 'rest' or 'state', not {cfg.part_k!r}")
         self.cfg = cfg
         self.n_objects = n_objects
         bg_slice = cfg.background_k == "slice"
         self.background_k = BACKGROUND_K if bg_slice else 0.0
+        # "auto" is resolved against the dataset by `trainer.build_model`; a model built without it has no motions
+        self.motions = PartMotions(cfg.max_objects) if cfg.motion == "rigid" else None
         self.field = RadianceField(cfg)
         self.proposals = nn.ModuleList(
-            [ProposalField(r, cfg.k_resolution if cfg.proposal_k else 0, cfg.proposal_features, cfg.proposal_hidden,
-                           bg_slice) for r in cfg.proposal_resolutions])
+            [ProposalField(r, cfg.k_resolution if self.proposals_read_k else 0, cfg.proposal_features,
+                           cfg.proposal_hidden, bg_slice) for r in cfg.proposal_resolutions])
         self.prob = ProbabilityField(cfg)
         self.variable = FrameVariable(cfg)
         self.bg_color = nn.Parameter(torch.full((3,), 0.5), requires_grad=cfg.background == "learned")
@@ -250,17 +278,75 @@ class LiveSceneModel(nn.Module):
         logits = self.prob(xyz, values)
         return logits.masked_fill(~self.slot_mask, -1e4)
 
-    def select_k(self, logits: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-        """Each sample takes the value of its most probable object; below the rejection threshold s
-        (or when no object exists) it takes the background value."""
-        with torch.no_grad():
-            probs = torch.softmax(logits, -1)[:, :-1]
-            best, idx = probs.max(-1)
-            keep = best >= self.cfg.reject_threshold if self.cfg.reject_threshold > 0 else torch.ones_like(best, dtype=torch.bool)
-            if self.n_objects == 0:
-                keep = torch.zeros_like(keep)
+    @property
+    def proposals_read_k(self) -> bool:
+        """Rigid parts share field coordinates with the static scene (a closed door's rest frame is where air is
+        once it opens), so proposals then tell them apart on the k axis too."""
+        return self.cfg.proposal_k or self.cfg.motion == "rigid"
+
+    def place(self, pts: torch.Tensor, dirs: torch.Tensor, values: torch.Tensor,
+              box: tuple[torch.Tensor, torch.Tensor], grad_logits: bool = True) -> Placement:
+        """Who owns each world sample and where the fields read it. pts, dirs (N, 3); values (N, max_objects).
+
+        Ownership logits come from the probability field read in each candidate owner's frame: the world for the
+        background and for objects without a rigid motion (conditioned on the values, as in the paper), each
+        rigid part's rest frame for that part (not conditioned: the motion carries its region). The sample then
+        takes its most probable object's frame and k (`select_k`'s rule), or the background's."""
+        rigid = self.motions.rigid(self.n_objects) if self.motions is not None else []
+        warp_values = values if self.cfg.motion_grad else values.detach()
+        n = pts.shape[0]
+        xyz = [normalise(pts, box)]
+        view = [dirs]
+        with torch.set_grad_enabled(grad_logits and torch.is_grad_enabled()):
+            if not rigid:
+                logits = self.prob(xyz[0], values)
+            else:
+                rest_p, rest_d = self.motions.to_rest(pts, dirs, warp_values, rigid)
+                xyz += list(normalise(rest_p, box).unbind(0))
+                view += list(rest_d.unbind(0))
+                gate = self.motions.inside(rigid, rest_p)  # only a part's hull is read in its frame
+                keep = torch.ones(values.shape[1], device=values.device, dtype=values.dtype)
+                keep[rigid] = 0
+                inputs = [xyz[0]] + [xyz[j + 1][gate[j]] for j in range(len(rigid))]
+                sizes = [n] + [int(g.sum()) for g in gate]
+                raw = self.prob(torch.cat(inputs), torch.cat([values * keep, values.new_zeros(sum(sizes[1:]),
+                                                                                           values.shape[1])]))
+                parts = raw.split(sizes)
+                cols = list(parts[0].unbind(-1))
+                for j, o in enumerate(rigid):
+                    col = torch.full((n,), GATED_LOGIT, device=raw.device, dtype=raw.dtype)
+                    cols[o] = col.masked_scatter(gate[j], parts[j + 1][:, o])
+                logits = torch.stack(cols, -1)
+            logits = logits.masked_fill(~self.slot_mask, -1e4)
+        groups = len(xyz)
+        idx, owned = self.owner(logits)
+        k = self.select_k(logits, values, (idx, owned))
+        if groups == 1:
+            return Placement(xyz[0], dirs, k, logits)
+        group_of = torch.zeros(values.shape[1], dtype=torch.long, device=pts.device)
+        group_of[rigid] = torch.arange(1, groups, device=pts.device)
+        group = torch.where(owned, group_of[idx], torch.zeros_like(idx))
+        if self.cfg.part_k == "rest":
+            k = torch.where(group > 0, torch.zeros_like(k), k)
+        sel = group[None, :, None].expand(1, n, 3)
+        return Placement(torch.stack(xyz).gather(0, sel)[0], torch.stack(view).gather(0, sel)[0], k, logits)
+
+    @torch.no_grad()
+    def owner(self, logits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(most probable object (N,), owned (N,) bool): below the rejection threshold s (or when the scene has
+        no object) a sample is the background's."""
+        best, idx = torch.softmax(logits, -1)[:, :-1].max(-1)
+        owned = best >= self.cfg.reject_threshold if self.cfg.reject_threshold > 0 else torch.ones_like(best, dtype=torch.bool)
+        if self.n_objects == 0:
+            owned = torch.zeros_like(owned)
+        return idx, owned
+
+    def select_k(self, logits: torch.Tensor, values: torch.Tensor,
+                 owner: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """Each sample takes the value of its most probable object, or the background value when it is not owned."""
+        idx, owned = owner if owner is not None else self.owner(logits)
         k = values.gather(1, idx.unsqueeze(1))[:, 0]
-        return torch.where(keep, k, torch.full_like(k, self.background_k))
+        return torch.where(owned, k, torch.full_like(k, self.background_k))
 
     def param_count(self) -> int:
         return sum(p.numel() for p in self.parameters() if p.requires_grad)

@@ -1,7 +1,8 @@
 """Ray marching with two proposal levels (K-planes / mip-NeRF 360 style) and volume rendering.
 
-Every level evaluates the interaction probability field at its samples to give each sample the interaction
-value k of its most probable object; proposal densities and the final field are read at (x, y, z, k).
+Every level asks the model where each sample is read (`LiveSceneModel.place`: its owner, from the interaction
+probability field; the owner's frame when it is a rigid part; the owner's interaction value k); proposal densities
+and the final field are read there, at (x, y, z, k).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from dataclasses import dataclass, field
 import torch
 
 from .config import SamplerConfig
-from .field import LiveSceneModel
+from .field import LiveSceneModel, normalise
 
 
 @dataclass
@@ -104,48 +105,43 @@ def render_rays(model: LiveSceneModel, origins: torch.Tensor, dirs: torch.Tensor
     `gen` given = training (jittered samples, annealed proposal weights); None = deterministic rendering."""
     lo, hi = box
     near, far = ray_box(origins, dirs, lo, hi, cfg.near)
-    scale = 2.0 / (hi - lo)
 
-    def points(edges: torch.Tensor) -> tuple[torch.Tensor, int]:
+    def points(edges: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """World points (R*S, 3) at the bins' middles, with their ray directions and states."""
         mid = 0.5 * (edges[:, 1:] + edges[:, :-1])
         s = mid.shape[1]
         pts = origins[:, None, :] + dirs[:, None, :] * mid[..., None]
-        return ((pts - lo) * scale - 1.0).reshape(-1, 3).clamp(-1, 1), s
+        return pts.reshape(-1, 3), dirs.repeat_interleave(s, 0), values.repeat_interleave(s, 0)
 
     r = origins.shape[0]
     edges = uniform_edges(near, far, cfg.proposal_samples[0], gen)
     proposals = []
     power = anneal_power(step, cfg) if gen is not None else 1.0
     for level, prop in enumerate(model.proposals):
-        xyz, s = points(edges)
-        if model.cfg.proposal_k:
-            vals = values.repeat_interleave(s, 0)
+        pts, d, vals = points(edges)
+        if model.proposals_read_k:
             with torch.no_grad():
-                k = model.select_k(model.logits(xyz, vals), vals)
+                place = model.place(pts, d, vals, box, grad_logits=False)
+            xyz, k = place.xyz, place.k
         else:
-            k = None
-        sigma = prop(xyz, k).view(r, s)
+            xyz, k = normalise(pts, box), None
+        sigma = prop(xyz, k).view(r, -1)
         w = volume_weights(sigma, edges)
         proposals.append((edges, w))
         n_next = cfg.proposal_samples[level + 1] if level + 1 < len(model.proposals) else cfg.samples
         edges = pdf_edges(edges, w.detach() ** power, n_next, gen)
-    xyz, s = points(edges)
-    vals = values.repeat_interleave(s, 0)
-    logits = model.logits(xyz, vals) if with_logits else None
-    if logits is not None:
-        k = model.select_k(logits, vals)
-    else:
-        with torch.no_grad():
-            lg = model.logits(xyz, vals)
-        k = model.select_k(lg, vals)
-    sigma, rgb = model.field(xyz, k, dirs.repeat_interleave(s, 0))
+    pts, d, vals = points(edges)
+    place = model.place(pts, d, vals, box, grad_logits=with_logits)
+    s = edges.shape[1] - 1
+    sigma, rgb = model.field(place.xyz, place.k, place.dirs)
     w = volume_weights(sigma.view(r, s), edges)
     acc = w.sum(-1)
     mid = 0.5 * (edges[:, 1:] + edges[:, :-1])
     color = (w[..., None] * rgb.view(r, s, 3)).sum(1) + (1 - acc)[:, None] * model.background()
     depth = (w * mid).sum(-1) + (1 - acc) * far
     rendered_logits = None
-    if logits is not None:
-        rendered_logits = render_logits(logits.view(r, s, -1), w.detach(), model.slot_mask, model.cfg.mask_render)
+    if with_logits:
+        rendered_logits = render_logits(place.logits.view(r, s, -1), w.detach(), model.slot_mask,
+                                        model.cfg.mask_render)
     return RenderOut(rgb=color, depth=depth, acc=acc, logits=rendered_logits, weights=w, edges=edges,
                      proposals=proposals, near=near, far=far)

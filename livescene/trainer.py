@@ -77,7 +77,25 @@ def build_model(cfg: TrainConfig, views: Views) -> tuple[TrainConfig, LiveSceneM
         print(f"livescene train: {n} objects > {cfg.model.max_objects} object slots: using {n} slots",
               file=sys.stderr)
         cfg.model.max_objects = n
-    return cfg, LiveSceneModel(cfg.model, n)
+    motions = part_motions(cfg.model.motion, views)
+    cfg.model.motion = "rigid" if motions else "none"
+    model = LiveSceneModel(cfg.model, n)
+    if motions:
+        model.motions.load(motions)
+    return cfg, model
+
+
+def part_motions(mode: str, views: Views) -> list | None:
+    """The dataset's rigid part motions per object (None where an object has none) when `mode` asks for them:
+    "auto" takes them when `articulation.json` names any object, "rigid" requires it, "none" never."""
+    ds = views.dataset
+    found = [ds.articulation.get(name) for name in views.names]
+    if mode == "none" or (mode == "auto" and not any(found)):
+        return None
+    if not any(found):
+        raise LiveSceneError(f"model.motion=rigid but {ds.root} has no part motions (articulation.json): "
+                             f"run `interreal motions {ds.root}`, or train with --set model.motion=none")
+    return found
 
 
 def _checkpoint_path(run_dir: Path, which: str | int | None) -> Path:
@@ -93,10 +111,13 @@ def _checkpoint_path(run_dir: Path, which: str | int | None) -> Path:
 
 
 def checkpoint_config(ckpt: dict) -> TrainConfig:
-    """The config a checkpoint was trained with; runs from before the background slice read k = 0 there."""
+    """The config a checkpoint was trained with; runs from before the background slice read k = 0 there, runs
+    from before rigid parts have none."""
     cfg = from_dict(ckpt["config"])
     if "background_k" not in ckpt["config"].get("model", {}):
         cfg.model.background_k = "zero"
+    if cfg.model.motion == "auto":  # runs from before rigid parts
+        cfg.model.motion = "none"
     return cfg
 
 
@@ -171,6 +192,12 @@ class Trainer:
         self.views = views
         self.model.to(self.device)
         self.data = RayData(views, self.device)
+        self.hulls: dict[str, dict] = {}
+        if resume_ckpt is None and self.model.motions is not None:
+            from .articulation import fit_hulls
+
+            motions = [views.dataset.articulation.get(n) for n in views.names]
+            self.hulls = fit_hulls(self.model.motions, motions, views, self.data.mask.numpy())
         self.box = (torch.as_tensor(views.box_lo, device=self.device), torch.as_tensor(views.box_hi, device=self.device))
         groups = [{"params": [p for p in ps if p.requires_grad], "name": n}
                   for n, ps in self.model.param_groups().items()]
@@ -413,6 +440,9 @@ class Trainer:
               f"  model: {params:,} parameters (planes {m.resolution}x{m.scales} k={m.k_resolution} "
               f"f={m.features}; proposals {m.proposal_resolutions}; variable {m.var_resolution} nodes; box from "
               f"{self.views.box_source})", flush=True)
+        if self.model.motions is not None:
+            rigid = [self.views.names[o] for o in self.model.motions.rigid(ds.n_objects)]
+            print(f"  rigid parts (articulation.json): {', '.join(rigid)}; read at k = {m.part_k}", flush=True)
         if self.step == 0:
             self.save_checkpoint()
         if self.max_minutes and not self._eval_s_per_px:  # a time limit needs the final evaluation's cost up front

@@ -42,6 +42,25 @@ def surface_box(cap: Capture, every: int = 10) -> list[float]:
     return [float(v) for v in np.concatenate([lo - pad, hi + pad])]
 
 
+def truth_articulation(capture_dir: str | Path, ds_dir: str | Path) -> dict[str, D.Articulation]:
+    """The capture's true part motions in the dataset's world frame (a similarity fitted to the camera centres,
+    so an SfM dataset of the capture gets them in its own units): the reference `interreal motions` is scored
+    against, and an oracle for the trainer."""
+    from ..scoring import umeyama
+
+    cap = Capture.open(capture_dir)
+    ds = D.load_dataset(ds_dir)
+    est = np.stack([f.c2w[:3, 3] for f in ds.frames])
+    s, R, t = umeyama(est, cap.poses[[f.index for f in ds.frames]][:, :3, 3])  # capture = s R dataset + t
+    parts = {p.name: p for p in cap.scene().parts}
+    out = {}
+    for name in ds.object_names:
+        p = parts[name]
+        out[name] = D.Articulation(p.kind, R.T @ p.axis, R.T @ (p.pivot - t) / s,
+                                   p.max_motion if p.kind == "hinge" else p.max_motion / s, {"source": "truth"})
+    return out
+
+
 def truth_dataset(capture_dir: str | Path, ds_dir: str | Path, size: tuple[int, int] = (320, 240),
                   every: int = 1, progress: bool = False) -> Path:
     """Write a valid LiveScene dataset from `capture_dir`'s truth into `ds_dir` (replaced if it exists).

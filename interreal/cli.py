@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "masks": ("interreal.masks", "propagate keyframe masks to every frame -> DS/masks"),
     "poses": ("interreal.sfm", "pycolmap SfM on DS/images (object pixels masked out) -> transforms.json"),
     "process": ("interreal.process", "frames -> masks -> poses -> labels in one go"),
+    "motions": ("interreal.motions", "measure each object's rigid motion (hinge / slide) -> DS/articulation.json"),
     "label": ("interreal.labels", "set / unset / list / import keyframe state labels"),
     "annotate": ("interreal.annotate", "local web app: draw keyframe masks, set states, run propagation"),
     "validate": ("interreal.dataset", "is this a loadable LiveScene dataset? exit 0 / the full list of problems"),

@@ -8,7 +8,8 @@ that frame, whether the part was still or moving. Those poses fix the motion:
   is linear in the state (`angle = range * state + c`, fitted on the frames whose state the labels give);
 - the translations are then linear in the part's unknowns (the reconstruction's scale, the rest pose, a point on
   the axis), solved by robust least squares over every registered frame;
-- a part whose rotations stay within `SLIDE_MAX_DEG` is a slide: its centre moves linearly with the state.
+- a part that turns less than `SLIDE_MAX_DEG` over its whole range is a slide: its centre moves linearly with the
+  state.
 The trainer (`livescene`, `model.motion`) then reads each part's samples in its rest frame (its pose at state 0).
 Conventions of the file: `interreal.conventions` / `interreal.dataset.Articulation`.
 """
@@ -26,10 +27,11 @@ from . import atomic
 from .conventions import ARTICULATION_FILE, IMAGES_DIR, opengl_to_opencv
 from .dataset import Articulation, known_states, load_dataset, write_articulation
 from .errors import InputError
-from .report import StageReport, files_fingerprint, fingerprint
+from .report import StageReport, files_fingerprint, finished_with, fingerprint, warning_lines
 
 MOTIONS_DIR = "motions"  # DS/motions/<object>/: the part reconstructions (database, masks, model)
-SLIDE_MAX_DEG = 3.0  # a part whose frames all turn less than this about each other slides
+SLIDE_MAX_DEG = 3.0  # a part that turns less than this between states 0 and 1 (or at all) slides
+OFF_AXIS_DEG = 3.0  # a frame whose turn leaves the hinge axis by more than this is misregistered
 
 
 @dataclass
@@ -198,24 +200,54 @@ def _basis(axis: np.ndarray) -> np.ndarray:
     return np.stack([e1, np.cross(axis, e1)], 1)
 
 
+def _consensus(rot: np.ndarray, known: np.ndarray, tries: int = 12) -> tuple[int, np.ndarray, np.ndarray]:
+    """(reference frame, hinge axis, inliers (F,) bool): the relative rotations of a rigid part's frames share one
+    axis; a misregistered frame does not. Each of up to `tries` frames with a known state is tried as the reference
+    (it may be misregistered itself) and the one whose axis most frames agree with (within `OFF_AXIS_DEG`) wins."""
+    best: tuple[int, int, np.ndarray, np.ndarray] | None = None
+    cands = np.flatnonzero(known)
+    cands = cands[np.linspace(0, len(cands) - 1, min(tries, len(cands))).round().astype(int)]
+    for ref in cands:
+        vecs = np.stack([_rotvec(r) for r in np.einsum("fij,kj->fik", rot, rot[ref])])
+        axis = _principal(vecs)
+        inl = np.ones(len(vecs), bool)
+        for _ in range(3):  # refit on the frames that agree
+            off = np.degrees(np.linalg.norm(vecs - np.outer(vecs @ axis, axis), axis=1))
+            inl = off < OFF_AXIS_DEG
+            axis = _principal(vecs[inl]) if inl.sum() >= 2 else axis
+        if best is None or inl.sum() > best[1]:
+            best = (int(ref), int(inl.sum()), axis, inl)
+    assert best is not None
+    return best[0], best[2], best[3]
+
+
+def _principal(vecs: np.ndarray) -> np.ndarray:
+    """The direction rotation vectors (F, 3) lie along, weighted by their size (small turns are mostly noise)."""
+    turn = np.linalg.norm(vecs, axis=1)
+    if turn.max() < 1e-9:
+        return np.array([0.0, 0.0, 1.0])
+    _, _, vt = np.linalg.svd(vecs * turn[:, None])
+    return vt[0]
+
+
 def fit_motion(pv: PartViews, states: np.ndarray, known: np.ndarray) -> tuple[Articulation, dict[str, Any]]:
     """A hinge or a slide from the part's per-frame poses; states, known (F,) of the registered frames.
 
-    Returns the motion and what it measured (residuals in degrees and world units, frames used, the scale of the
-    part reconstruction)."""
+    Returns the motion and what it measured (residuals in degrees and world units, frames used and rejected, the
+    scale of the part reconstruction)."""
+    ref, axis, inl = _consensus(pv.rot, known)
+    pv = PartViews(pv.frames[inl], pv.rot[inl], pv.u[inl], pv.centre[inl])
+    states, known = states[inl], known[inl]
     f = len(pv.frames)
-    ref = int(np.flatnonzero(known)[0])
-    rel = np.einsum("fij,kj->fik", pv.rot, pv.rot[ref])  # rotation of each frame relative to the reference
-    vecs = np.stack([_rotvec(r) for r in rel])
+    ref = int(np.searchsorted(np.flatnonzero(inl), ref))
+    vecs = np.stack([_rotvec(r) for r in np.einsum("fij,kj->fik", pv.rot, pv.rot[ref])])
     turn = np.degrees(np.linalg.norm(vecs, axis=1))
-    extra: dict[str, Any] = {"registered": f, "known": int(known.sum()), "max_turn_deg": round(float(turn.max()), 2)}
-    if np.percentile(turn, 95) < SLIDE_MAX_DEG:
-        return _fit_slide(pv, states, known, extra)
-    big = turn > 0.5 * np.percentile(turn, 95)
-    _, _, vt = np.linalg.svd(vecs[big] / np.linalg.norm(vecs[big], axis=1, keepdims=True))
-    axis = vt[0]
+    extra: dict[str, Any] = {"registered": int(len(inl)), "rejected": int((~inl).sum()), "known": int(known.sum()),
+                             "max_turn_deg": round(float(turn.max()), 2)}
     angle = vecs @ axis
     rate, c = _robust_line(states[known], angle[known])
+    if np.percentile(turn, 95) < SLIDE_MAX_DEG or np.degrees(abs(rate)) < SLIDE_MAX_DEG:
+        return _fit_slide(pv, states, known, extra)  # it barely turns, or not with its state: noise
     if rate < 0:
         axis, angle, rate, c = -axis, -angle, -rate, -c
     extra["off_axis_deg"] = round(float(np.degrees(np.median(np.linalg.norm(vecs - np.outer(angle, axis), axis=1)))), 3)
@@ -264,8 +296,9 @@ def _fit_slide(pv: PartViews, states: np.ndarray, known: np.ndarray, extra: dict
 # ----------------------------------------------------------------------------------------------------------------
 # The stage
 # ----------------------------------------------------------------------------------------------------------------
-def estimate_motions(ds_path: str | Path, **opts: Any) -> dict[str, Any]:
+def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> dict[str, Any]:
     """Measure every object's motion and write DS/articulation.json and reports/motions.json; returns the figures.
+    A finished run from the same masks, poses, labels and settings is reused unless `force`.
 
     An object the reconstruction cannot follow (too few registered frames, or too few of them with a known state)
     gets no motion and a warning: the trainer then moves it with the k-axis alone, as the paper does."""
@@ -293,8 +326,11 @@ def estimate_motions(ds_path: str | Path, **opts: Any) -> dict[str, Any]:
     inputs = {"frames": len(ds.frames), "objects": ds.object_names}
     key = fingerprint(asdict(cfg), files_fingerprint([ds_path / "transforms.json", ds_path / "key_frame_value.yaml"]),
                       files_fingerprint(sorted((ds_path / "masks").glob("*.npy"))))
+    done = finished_with(ds_path, "motions", key)
+    if done is not None and (ds_path / ARTICULATION_FILE).exists() and not force:
+        return dict(done["figures"], reused=True)
     motions: dict[str, Articulation] = {}
-    with StageReport(ds_path, "motions", inputs=inputs, settings=asdict(cfg)) as rep:
+    with StageReport(ds_path, "motions", inputs=inputs, settings=asdict(cfg), resume_key=key) as rep:
         for o, name in enumerate(ds.object_names):
             part = work / f"object_{o}"
             with rep.step(f"object {o}") as st:
@@ -320,7 +356,7 @@ def estimate_motions(ds_path: str | Path, **opts: Any) -> dict[str, Any]:
                 motion, fig = fit_motion(pv, states[pv.frames, o], known[pv.frames, o])
                 motions[name] = motion
                 st.update(kind=motion.kind, **fig)
-        write_articulation(ds_path, motions, {"source": "interreal motions", "resume_key": key})
+        write_articulation(ds_path, motions, {"source": "interreal motions"})
         rep.figures.update(objects={n: m.kind for n, m in motions.items()}, measured=len(motions),
                            total=ds.n_objects)
         figures = dict(rep.figures)
@@ -331,13 +367,18 @@ def add_arguments(p) -> None:
     p.add_argument("dataset", type=Path, help="dataset folder with images, masks, transforms.json and labels")
     p.add_argument("--erode", type=int, default=None, help="px taken off each mask's border (default 2)")
     p.add_argument("--min-pixels", type=int, default=None, help="frames showing fewer part pixels are skipped")
+    p.add_argument("--force", action="store_true", help="measure again even when a finished run matches")
     p.add_argument("--verbose", action="store_true", help="COLMAP's own log on the terminal")
     p.epilog = ("examples:\n  interreal motions out/ds\n  interreal motions out/ds --erode 4\n"
                 f"writes DS/{ARTICULATION_FILE} (read by `livescene train`) and DS/reports/motions.json")
 
 
 def main(args) -> int:
-    fig = estimate_motions(args.dataset, erode=args.erode, min_pixels=args.min_pixels, verbose=args.verbose)
-    print(f"motions: {fig['measured']} of {fig['total']} objects measured: "
+    fig = estimate_motions(args.dataset, force=args.force, erode=args.erode, min_pixels=args.min_pixels,
+                           verbose=args.verbose)
+    for line in warning_lines(args.dataset, ["motions"]):
+        print(line)
+    print(f"motions: {fig['measured']} of {fig['total']} objects measured"
+          + (" (reused: same inputs and settings)" if fig.get("reused") else "") + ": "
           + ", ".join(f"{n} ({k})" for n, k in fig["objects"].items()))
     return 0

@@ -1,4 +1,5 @@
-"""`interreal process INPUT DS`: frames -> masks (with --keyframes) -> poses -> labels (with --labels).
+"""`interreal process INPUT DS`: frames -> masks (with --keyframes) -> poses -> labels (with --labels) -> motions
+(with both).
 
 The order matters: masks come before poses so object pixels are left out of SfM features, and the frames named by
 the annotations are forced into the selection so every annotated frame survives.
@@ -81,8 +82,9 @@ def _stage_fn(module: str, name: str, flag: str) -> Callable[..., Any]:
 
 def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None = None,
             labels: str | Path | None = None, target: int | None = None, every: int | None = None,
-            long_side: int = 1600, **sfm: Any) -> dict[str, Any]:
-    """Run the stages in order; each writes its own reports/<stage>.json. Returns the pose figures."""
+            long_side: int = 1600, motions: bool = True, **sfm: Any) -> dict[str, Any]:
+    """Run the stages in order; each writes its own reports/<stage>.json. Returns the pose figures.
+    With masks and labels, `motions` also measures each object's rigid motion (`interreal motions`)."""
     ds = Path(ds)
     keep: set[int] = set()
     if keyframes is not None:
@@ -93,7 +95,7 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
     propagate = _stage_fn("interreal.masks", "propagate", "--keyframes") if keyframes is not None else None
     import_labels = _stage_fn("interreal.labels", "import_labels", "--labels") if labels is not None else None
     settings = {"keyframes": str(keyframes) if keyframes else None, "labels": str(labels) if labels else None,
-                "target": target, "every": every, "long_side": long_side, **sfm}
+                "target": target, "every": every, "long_side": long_side, "motions": motions, **sfm}
     ds.mkdir(parents=True, exist_ok=True)
     with StageReport(ds, "process", inputs={"source": str(source)}, settings=settings) as rep:
         with rep.step("frames") as st:
@@ -107,6 +109,11 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
         if import_labels is not None:
             with rep.step("labels"):
                 import_labels(ds, Path(labels))
+        if motions and propagate is not None and import_labels is not None:
+            from .motions import estimate_motions
+
+            with rep.step("motions") as st:
+                st.update(estimate_motions(ds))
         rep.figures.update({"frames": len(paths), "registered": fig.get("registered"), "total": fig.get("total")})
     return fig
 
@@ -120,6 +127,8 @@ def add_arguments(p) -> None:
     g.add_argument("--target", type=int, help="number of frames to select (video default 300)")
     g.add_argument("--every", type=int, help="one frame (the sharpest) per EVERY source frames")
     p.add_argument("--long-side", type=int, default=1600, help="long side of the training images (default 1600)")
+    p.add_argument("--no-motions", dest="motions", action="store_false",
+                   help="with --keyframes and --labels: skip measuring each object's rigid motion")
     add_sfm_options(p)
     p.epilog = ("examples:\n  interreal process room.mp4 out/room\n"
                 "  interreal process cap/video.mp4 out/ds --keyframes cap/annotations/keyframes \\\n"
@@ -130,8 +139,9 @@ def add_arguments(p) -> None:
 def main(args) -> int:
     t0 = time.perf_counter()
     fig = process(args.input, args.dataset, keyframes=args.keyframes, labels=args.labels, target=args.target,
-                  every=args.every, long_side=args.long_side, **sfm_options(args))
+                  every=args.every, long_side=args.long_side, motions=args.motions, **sfm_options(args))
     print("\n".join(warning_lines(args.dataset, ["frames", "masks"] if args.keyframes else ["frames"])
-                    + summary_lines(fig, args.dataset) + (warning_lines(args.dataset, ["labels"]) if args.labels else [])))
+                    + summary_lines(fig, args.dataset)
+                    + (warning_lines(args.dataset, ["labels", "motions"]) if args.labels else [])))
     print(f"process: done in {time.perf_counter() - t0:.1f} s -> {args.dataset}")
     return 0

@@ -45,12 +45,16 @@ class ModelConfig:
     background_k: str = "slice"  # what rejected samples read on the k axis: "slice" = a node of their own (the
     # paper's "background feature"); "zero" = k = 0 as the official code does, which is also every object's state 0,
     # so space an object leaves when it moves must read as that object at every state or it contradicts itself
-    mask_render: str = "logits"  # what the mask losses see per pixel: "logits" = sum of weight x logit as the
+    mask_render: str = "auto"  # what the mask losses see per pixel: "logits" = sum of weight x logit as the
     # official code renders it; "probs" = sum of weight x per-sample probability, so a pixel is right only when the
-    # samples that carry its colour (those whose k the field reads) are. "probs" made the per-sample probabilities
-    # sharp (closed fridge door 0.42 -> 0.96 on its surface) and draws the closed door at novel states from the
-    # side where it was only seen open, but in a 15-minute run its held-out PSNR, state MAE and mask IoU were lower
-    # (30.3 / 0.039 / 0.870 against 30.6 / 0.024 / 0.889), so it is not the default
+    # samples that carry its colour (those whose k the field reads) are; "auto" = "probs" with rigid parts, else
+    # "logits". With the k-axis alone, "probs" made per-sample probabilities sharp but a 15-minute run scored lower
+    # (held-out PSNR / state MAE / mask IoU 30.3 / 0.039 / 0.870 against 30.6 / 0.024 / 0.889); with rigid parts
+    # (true motions) it scored higher (29.6 / 0.017 / 0.82 and novel-state 25.1 against 27.3 / 0.016 / 0.80 / 21.9)
+    mask_shapes: str = "auto"  # do the mask losses reach the density ("grad") or only ownership ("detach", the
+    # paper's)? "auto" = "grad" with rigid parts: a part owns only its hull, so a pixel its mask gives it must be
+    # drawn by samples there. Detached, the benchmark fridge door, black and close to the last frames' cameras, was
+    # drawn by a floater 0.1 units from them, owned by the static scene, which stayed put at every other state
     motion: str = "auto"  # rigid part motions (`articulation.json`, `interreal motions`): "auto" = rigid when the
     # dataset has them, "rigid" = required, "none" = the k-axis alone moves parts (the paper's model)
     part_k: str = "rest"  # what a rigid part's samples read on the k axis: "rest" = k 0 at every state (one

@@ -236,8 +236,10 @@ class LiveSceneModel(nn.Module):
                              f"raise model.max_objects (--set model.max_objects={n_objects})")
         if cfg.background_k not in ("slice", "zero"):
             raise LiveSceneError(f"model.background_k must be 'slice' or 'zero', not {cfg.background_k!r}")
-        if cfg.mask_render not in ("probs", "logits"):
-            raise LiveSceneError(f"model.mask_render must be 'probs' or 'logits', not {cfg.mask_render!r}")
+        if cfg.mask_render not in ("auto", "probs", "logits"):
+            raise LiveSceneError(f"model.mask_render must be 'auto', 'probs' or 'logits', not {cfg.mask_render!r}")
+        if cfg.mask_shapes not in ("auto", "grad", "detach"):
+            raise LiveSceneError(f"model.mask_shapes must be 'auto', 'grad' or 'detach', not {cfg.mask_shapes!r}")
         if cfg.motion not in MOTION_MODES:
             raise LiveSceneError(f"model.motion must be one of {MOTION_MODES}, not {cfg.motion!r}")
         if cfg.part_k not in ("rest", "state"):
@@ -248,6 +250,9 @@ class LiveSceneModel(nn.Module):
         self.background_k = BACKGROUND_K if bg_slice else 0.0
         # "auto" is resolved against the dataset by `trainer.build_model`; a model built without it has no motions
         self.motions = PartMotions(cfg.max_objects) if cfg.motion == "rigid" else None
+        self.mask_render = cfg.mask_render if cfg.mask_render != "auto" else (
+            "probs" if cfg.motion == "rigid" else "logits")
+        self.mask_shapes = cfg.mask_shapes == "grad" or (cfg.mask_shapes == "auto" and cfg.motion == "rigid")
         self.field = RadianceField(cfg)
         self.proposals = nn.ModuleList(
             [ProposalField(r, cfg.k_resolution if self.proposals_read_k else 0, cfg.proposal_features,

@@ -86,7 +86,8 @@ def anneal_power(step: int, cfg: SamplerConfig) -> float:
 
 
 def render_logits(logits: torch.Tensor, weights: torch.Tensor, slot_mask: torch.Tensor, mode: str) -> torch.Tensor:
-    """Per-pixel object logits (R, C) from per-sample logits (R, S, C) and detached weights (R, S).
+    """Per-pixel object logits (R, C) from per-sample logits (R, S, C) and weights (R, S) (detached unless the mask
+    losses may shape the density: `ModelConfig.mask_shapes`).
 
     "probs": log of the weighted per-sample probabilities, the light that leaves the box counted as background,
     so the mask losses reach the very samples whose probabilities pick k. "logits": weighted logits (official)."""
@@ -141,7 +142,7 @@ def render_rays(model: LiveSceneModel, origins: torch.Tensor, dirs: torch.Tensor
     depth = (w * mid).sum(-1) + (1 - acc) * far
     rendered_logits = None
     if with_logits:
-        rendered_logits = render_logits(place.logits.view(r, s, -1), w.detach(), model.slot_mask,
-                                        model.cfg.mask_render)
+        rendered_logits = render_logits(place.logits.view(r, s, -1), w if model.mask_shapes else w.detach(),
+                                        model.slot_mask, model.mask_render)
     return RenderOut(rgb=color, depth=depth, acc=acc, logits=rendered_logits, weights=w, edges=edges,
                      proposals=proposals, near=near, far=far)

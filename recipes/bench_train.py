@@ -2,7 +2,9 @@
 
 Runs (each a flat record: data, variant, minutes, steps, psnr, ssim, state_mae, novel_state_psnr, mask_iou,
 params, label_fraction):
-  main       the cpu preset for 15 minutes (--quick: 2), full held-out evaluation (every 8th frame)
+  main       the cpu preset for 15 minutes (--quick: 2), full held-out evaluation (every 8th frame); with the part
+             motions `interreal motions` measured (rigid parts), scored against the simulator's (`motions`)
+  motion     the same length with the paper's k-axis alone (model.motion=none), and with the true motions
   reject     probability rejection s = 0 (official) against ours (s = 0.5), and ours with the official code's
              background k = 0 instead of a background slice of its own, equal time
   labels     state MAE against the fraction of labelled frames (1, 2, 5, 10, 25 %)
@@ -25,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from interreal.conventions import ARTICULATION_FILE  # noqa: E402
 from benchlib import bench_args, print_table, write_results  # noqa: E402
 
 # evaluation figures copied into a run record (a re-evaluation replaces exactly these)
@@ -38,7 +41,7 @@ def extra_args(p) -> None:
     p.add_argument("--data", type=Path, default=None, help="an existing `interreal synth` capture (default: make one)")
     p.add_argument("--source", choices=("own", "truth"), default="own",
                    help="dataset: our own pipeline's output (default) or the simulator's truth poses and masks")
-    p.add_argument("--only", default="main,reject,labels,capacity,objects", help="comma list of parts to run")
+    p.add_argument("--only", default="main,motion,reject,labels,capacity,objects", help="comma list of parts to run")
     p.add_argument("--minutes", type=float, default=None, help="main run length (default 15, --quick 2)")
     p.add_argument("--sweep-minutes", type=float, default=None, help="length of each sweep run (default 4, --quick 1)")
     p.add_argument("--eval-frames", type=int, default=None, help="held-out frames evaluated (default all, --quick 4)")
@@ -112,7 +115,56 @@ def relabel(ds: Path, cap: Path, fraction: float, out: Path) -> Path:
         f = src.frames[j]
         labels[frame_name(f.index)] = {nm: float(round(states[f.index, c], 4)) for c, nm in enumerate(truth.names)}
     D.write_labels(dst, labels)
+    if (ds / ARTICULATION_FILE).exists():  # the motions as these labels alone give them
+        from interreal.motions import estimate_motions
+
+        estimate_motions(dst)
     return dst
+
+
+def oracle(ds: Path, cap: Path, out: Path) -> Path:
+    """A copy of `ds` (folders linked) whose articulation.json holds the simulator's true motions."""
+    import shutil
+
+    from interreal import dataset as D
+    from interreal.synth import truth_articulation
+
+    dst = out / "data" / "ds_oracle"
+    if dst.exists():
+        shutil.rmtree(dst)
+    dst.mkdir(parents=True)
+    for name in ("images", "masks"):
+        (dst / name).symlink_to((ds / name).resolve())
+    for name in ("transforms.json", "mapping.yaml", "prompts.yaml", "sparse_pc.ply", "key_frame_value.yaml"):
+        if (ds / name).exists():
+            shutil.copy(ds / name, dst / name)
+    D.write_articulation(dst, truth_articulation(cap, ds), {"source": "simulator truth"})
+    return dst
+
+
+def motion_errors(ds: Path, cap: Path) -> dict[str, dict] | None:
+    """Per object: the estimated motion (articulation.json) against the simulator's: kind, axis angle (deg), the
+    true hinge origin's distance from the estimated axis and the range error (share of the true range)."""
+    from interreal.dataset import read_articulation
+    from interreal.synth import truth_articulation
+
+    est = read_articulation(ds)
+    if not est:
+        return None
+    out = {}
+    for name, t in truth_articulation(cap, ds).items():
+        e = est.get(name)
+        if e is None:
+            out[name] = {"measured": False}
+            continue
+        rec = {"kind": e.kind, "true_kind": t.kind,
+               "axis_deg": round(float(np.degrees(np.arccos(np.clip(abs(e.axis @ t.axis), 0, 1)))), 2),
+               "range_error": round(abs(e.range - t.range) / t.range, 4)}
+        if t.kind == "hinge" and e.kind == "hinge":
+            d = t.origin - e.origin
+            rec["origin_error"] = round(float(np.linalg.norm(d - (d @ e.axis) * e.axis)), 4)
+        out[name] = rec
+    return out
 
 
 EVAL_SCALE = 0.5
@@ -250,7 +302,13 @@ def main() -> int:
         rec.pop("label_fraction", None)
         record("main", rec)
     if "main" in only:
-        record("main", train_and_eval(ds, cap, args.out / "runs" / "main", minutes, box, device, eval_frames))
+        record("main", train_and_eval(ds, cap, args.out / "runs" / "main", minutes, box, device, eval_frames),
+               motions=motion_errors(ds, cap))
+    if "motion" in only:  # the paper's k-axis alone, and rigid parts with the simulator's true motions
+        record("motion k-axis", train_and_eval(ds, cap, args.out / "runs" / "motion_k", minutes, box, device,
+                                               eval_frames, ["model.motion=none"]))
+        record("motion truth", train_and_eval(oracle(ds, cap, args.out), cap, args.out / "runs" / "motion_truth",
+                                              minutes, box, device, eval_frames))
     if "reject" in only:
         for s, bg in ((0.0, "slice"), (0.5, "slice"), (0.5, "zero")):
             name = f"reject s={s:g}" + (" bg k=0" if bg == "zero" else "")

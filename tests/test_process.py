@@ -46,17 +46,23 @@ def test_stages_run_in_order_with_annotated_frames_kept(tmp_path, monkeypatch):
     labels.import_labels = lambda ds, f, **kw: calls.append(("labels", f.name))
     monkeypatch.setitem(sys.modules, "interreal.masks", masks)
     monkeypatch.setitem(sys.modules, "interreal.labels", labels)
+    motions = types.ModuleType("interreal.motions")
+    motions.estimate_motions = lambda ds, **kw: calls.append(("motions", kw)) or {"measured": 1}
+    monkeypatch.setitem(sys.modules, "interreal.motions", motions)
     kf = tmp_path / "kf"
     kf.mkdir()
     (kf / "00012.png").write_text("x")
     states = tmp_path / "states.yaml"
     states.write_text(yaml.safe_dump({"frame_00030": {"door": 1.0}}))
     proc.process("in.mp4", tmp_path / "ds", keyframes=kf, labels=states, target=50, matcher="sequential")
-    assert [c[0] for c in calls] == ["frames", "masks", "poses", "labels"]
+    assert [c[0] for c in calls] == ["frames", "masks", "poses", "labels", "motions"]
     assert calls[0][1]["keep"] == [12, 30] and calls[0][1]["target"] == 50
     assert calls[2][1]["matcher"] == "sequential"
     rep = json.loads((tmp_path / "ds" / "reports" / "process.json").read_text())
-    assert rep["status"] == "ok" and list(rep["steps"]) == ["frames", "masks", "poses", "labels"]
+    assert rep["status"] == "ok" and list(rep["steps"]) == ["frames", "masks", "poses", "labels", "motions"]
+    calls.clear()
+    proc.process("in.mp4", tmp_path / "ds", keyframes=kf, labels=states, motions=False)
+    assert [c[0] for c in calls] == ["frames", "masks", "poses", "labels"]
 
 
 def test_missing_stage_module_fails_before_any_work(tmp_path, monkeypatch):

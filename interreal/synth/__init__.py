@@ -10,7 +10,7 @@ from .config import SynthConfig, list_presets, load_preset
 from .scene import RenderResult, Scene, build_scene
 
 __all__ = ["SynthConfig", "build_scene", "Scene", "RenderResult", "write_capture", "Capture", "truth_dataset",
-           "list_presets", "load_preset"]
+           "truth_articulation", "list_presets", "load_preset"]
 
 
 def __getattr__(name: str):
@@ -19,8 +19,8 @@ def __getattr__(name: str):
         from . import capture
 
         return getattr(capture, name)
-    if name == "truth_dataset":
-        from .truth import truth_dataset
+    if name in ("truth_dataset", "truth_articulation"):
+        from . import truth
 
-        return truth_dataset
+        return getattr(truth, name)
     raise AttributeError(name)

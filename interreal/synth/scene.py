@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from ..conventions import opencv_to_opengl, opengl_to_opencv
-from ..dataset import Intrinsics
+from ..dataset import Articulation, Intrinsics
 from ..errors import InputError
 from .camera import CameraPath, phone_intrinsics
 from .config import SynthConfig
@@ -66,12 +66,14 @@ class Part:
     axis: np.ndarray  # unit vector: rotation axis (right-hand rule) or slide direction
     max_motion: float  # radians or metres
 
+    @property
+    def motion(self) -> Articulation:
+        """The motion in the `articulation.json` convention (the simulator's world frame)."""
+        return Articulation(self.kind, self.axis, self.pivot, self.max_motion)
+
     def pose(self, s: float) -> tuple[np.ndarray, np.ndarray]:
         """(R, t) such that a rest-pose point p moves to R @ p + t."""
-        if self.kind == "slide":
-            return np.eye(3), self.axis * (s * self.max_motion)
-        R = _axis_angle(self.axis, s * self.max_motion)
-        return R, self.pivot - R @ self.pivot
+        return self.motion.pose(s)
 
 
 @dataclass
@@ -94,12 +96,6 @@ class Occluder:
                 u = (time - start) / max(1e-9, end - start)
                 return base + direction * (2 * u - 1) * half_span, direction
         return None
-
-
-def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * (K @ K)
 
 
 # ----------------------------------------------------------------------------------------------------------------

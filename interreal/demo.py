@@ -1,6 +1,6 @@
 """`interreal demo`: the whole job end to end, on a simulated capture (with truth scores) or on your own video.
 
-simulate -> process (frames -> masks from keyframes -> poses -> labels) -> validate -> livescene train (CPU preset)
+simulate -> process (frames -> masks from keyframes -> poses -> labels -> motions) -> validate -> livescene train (CPU preset)
 -> eval (against the simulator's truth) -> render a video sweeping each object's state from 0 to 1.
 Each step is skipped when its output is already there, so a killed demo resumes where it stopped.
 """
@@ -90,9 +90,30 @@ def process_capture(cfg: DemoConfig, video: Path, keyframes: Path | None, labels
         _, given = d.label_matrix()
         _row(cfg, "labels", steps.get("labels", {}).get("wall_s", 0.0), f"{int(given.sum())} labelled (frame, object) pairs "
              f"on {int(given.any(1).sum())}/{len(d.frames)} frames")
-    for line in warning_lines(ds, ["frames", "masks", "poses", "labels"]):  # what the stages noticed, not only in JSON
+    if "motions" in steps:
+        _row(cfg, "motions", steps["motions"].get("wall_s", 0.0), _motion_quality(ds, capture))
+    for line in warning_lines(ds, ["frames", "masks", "poses", "labels", "motions"]):  # noticed, not only in JSON
         print(line, flush=True)
     return ds
+
+
+def _motion_quality(ds: Path, capture: Path | None) -> str:
+    """Each object's measured motion, and with a simulated capture how far it is from the true one."""
+    from .dataset import load_dataset, read_articulation
+    from .scoring import motion_errors
+
+    if capture is None:
+        motions = read_articulation(ds)
+        return "; ".join(f"{n}: {motions[n].kind}" if n in motions else f"{n}: not measured"
+                         for n in load_dataset(ds).object_names)
+    parts = []
+    for name, e in motion_errors(ds, capture).items():
+        if not e.get("kind"):
+            parts.append(f"{name}: not measured")
+            continue
+        parts.append(f"{name}: {e['kind']} (true {e['true_kind']}), axis {e['axis_deg']:.1f} deg off, range "
+                     f"{100 * e['range_error']:.0f} % off")
+    return "; ".join(parts) or "no motion measured"
 
 
 def _mask_summary(ds: Path) -> str:

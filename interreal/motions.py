@@ -31,6 +31,7 @@ from .report import StageReport, files_fingerprint, finished_with, fingerprint, 
 
 MOTIONS_DIR = "motions"  # DS/motions/<object>/: the part reconstructions (database, masks, model)
 SLIDE_MAX_DEG = 3.0  # a part that turns less than this between states 0 and 1 (or at all) slides
+MAX_STATE_RMSE = 0.1  # a motion that gives the labelled states from the part's poses worse than this is not used
 OFF_AXIS_DEG = 3.0  # a frame whose turn leaves the hinge axis by more than this is misregistered
 
 
@@ -238,16 +239,27 @@ def fit_motion(pv: PartViews, states: np.ndarray, known: np.ndarray) -> tuple[Ar
     ref, axis, inl = _consensus(pv.rot, known)
     pv = PartViews(pv.frames[inl], pv.rot[inl], pv.u[inl], pv.centre[inl])
     states, known = states[inl], known[inl]
-    f = len(pv.frames)
     ref = int(np.searchsorted(np.flatnonzero(inl), ref))
     vecs = np.stack([_rotvec(r) for r in np.einsum("fij,kj->fik", pv.rot, pv.rot[ref])])
     turn = np.degrees(np.linalg.norm(vecs, axis=1))
     extra: dict[str, Any] = {"registered": int(len(inl)), "rejected": int((~inl).sum()), "known": int(known.sum()),
                              "max_turn_deg": round(float(turn.max()), 2)}
+    slide = _fit_slide(pv, states, known, dict(extra))
+    rate, _ = _robust_line(states[known], (vecs @ axis)[known])
+    if np.percentile(turn, 95) < SLIDE_MAX_DEG or np.degrees(abs(rate)) < SLIDE_MAX_DEG:
+        return slide  # it barely turns, or not with its state: noise
+    hinge = _fit_hinge(pv, states, known, vecs, axis, ref, extra)
+    # a small part's rotations are noisy: the motion that gives the labelled states better wins
+    return hinge if hinge[1]["state_rmse_from_pose"] <= slide[1]["state_rmse_from_pose"] else slide
+
+
+def _fit_hinge(pv: PartViews, states: np.ndarray, known: np.ndarray, vecs: np.ndarray, axis: np.ndarray, ref: int,
+               extra: dict) -> tuple[Articulation, dict]:
+    """The hinge about `axis` whose angle is linear in the state; vecs (F, 3) each frame's rotation vector relative
+    to frame `ref`. The translations then give the reconstruction's scale, the rest pose and a point on the axis."""
+    f = len(pv.frames)
     angle = vecs @ axis
     rate, c = _robust_line(states[known], angle[known])
-    if np.percentile(turn, 95) < SLIDE_MAX_DEG or np.degrees(abs(rate)) < SLIDE_MAX_DEG:
-        return _fit_slide(pv, states, known, extra)  # it barely turns, or not with its state: noise
     if rate < 0:
         axis, angle, rate, c = -axis, -angle, -rate, -c
     extra["off_axis_deg"] = round(float(np.degrees(np.median(np.linalg.norm(vecs - np.outer(angle, axis), axis=1)))), 3)
@@ -354,8 +366,13 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                              cause="motion-unregistered", object=name)
                     continue
                 motion, fig = fit_motion(pv, states[pv.frames, o], known[pv.frames, o])
-                motions[name] = motion
                 st.update(kind=motion.kind, **fig)
+                if not fig["state_rmse_from_pose"] <= MAX_STATE_RMSE:
+                    rep.warn(f"'{name}': the measured {motion.kind} gives the labelled states only within "
+                             f"{fig['state_rmse_from_pose']:.2f} (RMSE > {MAX_STATE_RMSE}): not used; check its "
+                             f"labels and masks", cause="motion-inconsistent", object=name)
+                    continue
+                motions[name] = motion
         write_articulation(ds_path, motions, {"source": "interreal motions"})
         rep.figures.update(objects={n: m.kind for n, m in motions.items()}, measured=len(motions),
                            total=ds.n_objects)

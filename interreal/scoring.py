@@ -103,3 +103,26 @@ def rotation_gauge(est_R: np.ndarray, ref_R: np.ndarray, iters: int = 20) -> np.
         w = 1.0 / np.maximum(np.linalg.norm(res, axis=1), 1e-9)
         G = Rotation.from_rotvec(-(w[:, None] * res).sum(0) / w.sum()).as_matrix() @ G
     return G
+
+
+def motion_errors(ds: Path, cap: Path) -> dict[str, dict]:
+    """Per object: the estimated motion (articulation.json) against the simulator's: kind, axis angle (deg), the
+    true hinge origin's distance from the estimated axis and the range error (share of the true range)."""
+    from .dataset import read_articulation
+    from .synth import truth_articulation
+
+    est = read_articulation(ds)
+    out: dict[str, dict] = {}
+    for name, t in truth_articulation(cap, ds).items():
+        e = est.get(name)
+        if e is None:
+            out[name] = {"measured": False}
+            continue
+        rec = {"kind": e.kind, "true_kind": t.kind,
+               "axis_deg": round(float(np.degrees(np.arccos(np.clip(abs(e.axis @ t.axis), 0, 1)))), 2),
+               "range_error": round(abs(e.range - t.range) / t.range, 4)}
+        if t.kind == "hinge" and e.kind == "hinge":
+            d = t.origin - e.origin
+            rec["origin_error"] = round(float(np.linalg.norm(d - (d @ e.axis) * e.axis)), 4)
+        out[name] = rec
+    return out

@@ -51,10 +51,11 @@ class ModelConfig:
     # "logits". With the k-axis alone, "probs" made per-sample probabilities sharp but a 15-minute run scored lower
     # (held-out PSNR / state MAE / mask IoU 30.3 / 0.039 / 0.870 against 30.6 / 0.024 / 0.889); with rigid parts
     # (true motions) it scored higher (29.6 / 0.017 / 0.82 and novel-state 25.1 against 27.3 / 0.016 / 0.80 / 21.9)
-    mask_shapes: str = "auto"  # do the mask losses reach the density ("grad") or only ownership ("detach", the
-    # paper's)? "auto" = "grad" with rigid parts: a part owns only its hull, so a pixel its mask gives it must be
-    # drawn by samples there. Detached, the benchmark fridge door, black and close to the last frames' cameras, was
-    # drawn by a floater 0.1 units from them, owned by the static scene, which stayed put at every other state
+    mask_shapes: str = "detach"  # do the mask losses reach the density? "detach" = no, only ownership (the
+    # paper's); "grad" = yes, moving light along each ray (not its amount) towards the samples its mask's owner owns.
+    # With rigid parts (estimated motions, 15 min) "grad" fixed the fridge door's ownership where it is black and
+    # close to the last cameras (a floater 0.1 units from them, owned by the static scene; mask IoU 0.72 -> 0.85,
+    # novel-state 23.7 -> 24.1 dB) but cost 1.5 dB held-out (29.85 -> 28.40); only on object pixels: 27.96 / 22.5
     motion: str = "auto"  # rigid part motions (`articulation.json`, `interreal motions`): "auto" = rigid when the
     # dataset has them, "rigid" = required, "none" = the k-axis alone moves parts (the paper's model)
     part_k: str = "rest"  # what a rigid part's samples read on the k axis: "rest" = k 0 at every state (one

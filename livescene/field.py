@@ -238,8 +238,8 @@ class LiveSceneModel(nn.Module):
             raise LiveSceneError(f"model.background_k must be 'slice' or 'zero', not {cfg.background_k!r}")
         if cfg.mask_render not in ("auto", "probs", "logits"):
             raise LiveSceneError(f"model.mask_render must be 'auto', 'probs' or 'logits', not {cfg.mask_render!r}")
-        if cfg.mask_shapes not in ("auto", "grad", "detach"):
-            raise LiveSceneError(f"model.mask_shapes must be 'auto', 'grad' or 'detach', not {cfg.mask_shapes!r}")
+        if cfg.mask_shapes not in ("grad", "detach"):
+            raise LiveSceneError(f"model.mask_shapes must be 'grad' or 'detach', not {cfg.mask_shapes!r}")
         if cfg.motion not in MOTION_MODES:
             raise LiveSceneError(f"model.motion must be one of {MOTION_MODES}, not {cfg.motion!r}")
         if cfg.part_k not in ("rest", "state"):
@@ -252,7 +252,7 @@ class LiveSceneModel(nn.Module):
         self.motions = PartMotions(cfg.max_objects) if cfg.motion == "rigid" else None
         self.mask_render = cfg.mask_render if cfg.mask_render != "auto" else (
             "probs" if cfg.motion == "rigid" else "logits")
-        self.mask_shapes = cfg.mask_shapes == "grad" or (cfg.mask_shapes == "auto" and cfg.motion == "rigid")
+        self.mask_shapes = cfg.mask_shapes == "grad"
         self.field = RadianceField(cfg)
         self.proposals = nn.ModuleList(
             [ProposalField(r, cfg.k_resolution if self.proposals_read_k else 0, cfg.proposal_features,

@@ -93,8 +93,12 @@ def render_logits(logits: torch.Tensor, weights: torch.Tensor, slot_mask: torch.
     so the mask losses reach the very samples whose probabilities pick k. "logits": weighted logits (official)."""
     if mode == "logits":
         return (weights[..., None] * logits).sum(1).masked_fill(~slot_mask, -1e4)
+    acc = weights.sum(1, keepdim=True).detach()
+    if weights.requires_grad:  # only where along the ray the light comes from may change, not how much of it:
+        # else "transparent" is the cheapest background
+        weights = weights / weights.sum(1, keepdim=True).clamp(min=1e-6) * acc
     p = (weights[..., None] * torch.softmax(logits, -1)).sum(1)
-    p = torch.cat([p[:, :-1], p[:, -1:] + (1 - weights.sum(1, keepdim=True)).clamp(min=0)], -1)
+    p = torch.cat([p[:, :-1], p[:, -1:] + (1 - acc).clamp(min=0)], -1)
     return torch.log(p.clamp(min=1e-6)).masked_fill(~slot_mask, -1e4)
 
 

@@ -28,6 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from interreal.conventions import ARTICULATION_FILE  # noqa: E402
+from interreal.scoring import motion_errors  # noqa: E402
 from benchlib import bench_args, print_table, write_results  # noqa: E402
 
 # evaluation figures copied into a run record (a re-evaluation replaces exactly these)
@@ -141,30 +142,6 @@ def oracle(ds: Path, cap: Path, out: Path) -> Path:
     D.write_articulation(dst, truth_articulation(cap, ds), {"source": "simulator truth"})
     return dst
 
-
-def motion_errors(ds: Path, cap: Path) -> dict[str, dict] | None:
-    """Per object: the estimated motion (articulation.json) against the simulator's: kind, axis angle (deg), the
-    true hinge origin's distance from the estimated axis and the range error (share of the true range)."""
-    from interreal.dataset import read_articulation
-    from interreal.synth import truth_articulation
-
-    est = read_articulation(ds)
-    if not est:
-        return None
-    out = {}
-    for name, t in truth_articulation(cap, ds).items():
-        e = est.get(name)
-        if e is None:
-            out[name] = {"measured": False}
-            continue
-        rec = {"kind": e.kind, "true_kind": t.kind,
-               "axis_deg": round(float(np.degrees(np.arccos(np.clip(abs(e.axis @ t.axis), 0, 1)))), 2),
-               "range_error": round(abs(e.range - t.range) / t.range, 4)}
-        if t.kind == "hinge" and e.kind == "hinge":
-            d = t.origin - e.origin
-            rec["origin_error"] = round(float(np.linalg.norm(d - (d @ e.axis) * e.axis)), 4)
-        out[name] = rec
-    return out
 
 
 EVAL_SCALE = 0.5

@@ -19,10 +19,11 @@ def test_demo_pipeline_tiny(tmp_path: Path):
                      device="cpu")
     rows = run_demo(cfg)
     stages = [r["stage"] for r in rows]
-    assert stages == ["simulate", "frames", "masks", "poses", "labels", "train", "eval", "render", "total"]
+    assert stages == ["simulate", "frames", "masks", "poses", "labels", "motions", "train", "eval", "render", "total"]
     by = {r["stage"]: r["quality"] for r in rows}
     assert "30/30 registered" in by["poses"] or "29/30 registered" in by["poses"]
     assert "mask IoU" in by["masks"] and "PSNR" in by["eval"]
+    assert "fridge door" in by["motions"]  # measured, or named as not measured (30 frames may not follow it)
     ev = json.loads((cfg.out / "eval.json").read_text())
     assert ev["psnr"] > 10.0 and ev["state_mae"] is not None
     sweeps = sorted((cfg.out / "renders").glob("sweep_*.mp4"))

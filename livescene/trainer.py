@@ -523,6 +523,8 @@ def add_arguments(p) -> None:
                 "  livescene train out/ds --out out/run --preset cpu --max-minutes 15\n"
                 "  livescene train out/ds --out out/run --resume              # after a kill, continues exactly\n"
                 "  livescene train out/ds --out out/run --set model.reject_threshold=0 --steps 2000\n"
+                "  livescene train out/ds --out out/run --set model.motion=none   # the paper's k-axis alone, even\n"
+                "                                                   # when out/ds/articulation.json has part motions\n"
                 f"{JEMALLOC_ENV}=1 re-runs it under jemalloc (slower on the machine it was measured on; see livescene.device)")
 
 

@@ -5,7 +5,8 @@ side is not the same surface at another state from another side: on the benchmar
 training view near one camera showed open rendered at 12.9 dB there when asked half closed. With a rigid motion
 per part (a hinge turning about an axis, a slide moving along one: `interreal.dataset.Articulation`, estimated by
 `interreal motions`), every view of the part at any state trains the same rest-frame surface, and the space a
-part leaves when it moves is the static scene's by construction.
+part leaves when it moves is the static scene's by construction (benchmark, 15 min: novel-state PSNR 22.2 -> 23.7
+dB; that camera stays low, its black close-up door face drawn by a floater outside the door's hull).
 """
 
 from __future__ import annotations
@@ -14,8 +15,8 @@ import numpy as np
 import torch
 from torch import nn
 
-KIND_CODES = {"hinge": 1, "slide": 2}
-HULL_RES = 64  # cells along each axis of a part's rest-frame hull box  # 0: the object has no rigid motion (the k-axis alone moves it)
+KIND_CODES = {"hinge": 1, "slide": 2}  # 0: the object has no rigid motion (the k-axis alone moves it)
+HULL_RES = 64  # cells along each axis of a part's rest-frame hull box
 
 
 def rotate(v: torch.Tensor, axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:

@@ -133,10 +133,9 @@ class Articulation:
         """(R, t) taking a rest-pose point p to R @ p + t at state s."""
         if self.kind == "slide":
             return np.eye(3), self.axis * (s * self.range)
-        a = self.axis
-        k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-        th = s * self.range
-        rot = np.eye(3) + np.sin(th) * k + (1 - np.cos(th)) * (k @ k)
+        from scipy.spatial.transform import Rotation
+
+        rot = Rotation.from_rotvec(np.asarray(self.axis, float) * (s * self.range)).as_matrix()
         return rot, self.origin - rot @ self.origin
 
     def to_json(self) -> dict[str, Any]:

@@ -196,8 +196,7 @@ class Trainer:
         if resume_ckpt is None and self.model.motions is not None:
             from .articulation import fit_hulls
 
-            motions = [views.dataset.articulation.get(n) for n in views.names]
-            self.hulls = fit_hulls(self.model.motions, motions, views, self.data.mask.numpy())
+            self.hulls = fit_hulls(self.model.motions, part_motions("rigid", views), views, self.data.mask.numpy())
         self.box = (torch.as_tensor(views.box_lo, device=self.device), torch.as_tensor(views.box_hi, device=self.device))
         groups = [{"params": [p for p in ps if p.requires_grad], "name": n}
                   for n, ps in self.model.param_groups().items()]

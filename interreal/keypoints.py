@@ -212,7 +212,8 @@ def extend_tracks(rec, image_dir: Path, mask_dir: Path | None = None, *, window:
     Candidates: views within `window` frames (name order) of the track's first and last view, where the point
     lies in front of the camera, inside the image and off the object masks. Each candidate's patch is aligned to
     the track's reference view (Lucas-Kanade from the projection); it becomes an observation when the alignment
-    converges within max_shift of the projection and the patches agree (an occluded or unlike view fails that).
+    converges within max_shift of the projection, off the masks, and the patches agree (an occluded or unlike view
+    fails that).
     Candidates are aligned in batches of consecutive views of up to `batch` candidates (each holds two image
     blocks, ~0.5 KB), so memory stays bounded on long captures; a view's candidates are never split.
     Run a bundle adjustment after. bar: advanced once per view. Returns counts for the report."""
@@ -275,6 +276,10 @@ def extend_tracks(rec, image_dir: Path, mask_dir: Path | None = None, *, window:
         if len(k_all):
             new, ok, _ = _align_rows(names, image_dir, ref[k_all, 0], track_ref_xy[k_all], tgt_id, xy,
                                      window=LK_WINDOW, max_shift=max_shift, max_residual=max_residual, chunk=chunk)
+            for iid in np.unique(tgt_id[ok]):  # the alignment may move a projection onto an object: drop it there
+                rows_i = np.nonzero(ok & (tgt_id == iid))[0]
+                cam = rec.cameras[images[int(iid)].camera_id]
+                ok[rows_i] = _unmasked(mask_dir, names[int(iid)], new[rows_i], (cam.width, cam.height))
             for c in np.nonzero(ok)[0]:
                 pts = images[int(tgt_id[c])].points2D
                 pts.append(pycolmap.Point2D(new[c]))

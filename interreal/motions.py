@@ -46,7 +46,8 @@ class MotionConfig:
     key_every: int = 4
     min_registered: int = 8  # fewer registered frames than this: no motion for the part (the k-axis alone moves it)
     min_known: int = 3  # frames with a known state among the registered ones
-    seed: int = 0
+    seed: int = 0  # mapper attempt k uses seed + k
+    attempts: int = 3  # mapper runs per part at most (a bent or flipped model of a planar part gives bad states)
     num_threads: int = -1
     verbose: bool = False
 
@@ -85,8 +86,8 @@ def part_pairs(n: int, overlap: int, key_every: int) -> list[tuple[int, int]]:
     return sorted(pairs)
 
 
-def reconstruct_part(pc, ds, names: list[str], mask_dir: Path, work: Path, cfg: MotionConfig):
-    """The largest pycolmap model of the masked part, the dataset's intrinsics held fixed (None when none)."""
+def match_part(pc, ds, names: list[str], mask_dir: Path, work: Path, cfg: MotionConfig) -> Path:
+    """work/database.db with the masked part's features and verified matches (the dataset's intrinsics)."""
     intr = ds.intrinsics
     db = work / "database.db"
     db.unlink(missing_ok=True)
@@ -108,12 +109,17 @@ def reconstruct_part(pc, ds, names: list[str], mask_dir: Path, work: Path, cfg: 
                                                                              use_gpu=False),
                          pairing_options=pc.ImportedPairingOptions(match_list_path=str(listing)),
                          verification_options=verify, device=pc.Device.cpu)
-    opt = pc.IncrementalPipelineOptions(num_threads=cfg.num_threads, random_seed=cfg.seed, min_model_size=3)
+    return db
+
+
+def map_part(pc, ds, db: Path, out: Path, cfg: MotionConfig, seed: int):
+    """The largest pycolmap model of the matched part, the dataset's intrinsics held fixed (None when none).
+    A part is often nearly planar (a drawer's front): which model the mapper settles on depends on its seed."""
+    opt = pc.IncrementalPipelineOptions(num_threads=cfg.num_threads, random_seed=seed, min_model_size=3)
     opt.ba_refine_focal_length = opt.ba_refine_principal_point = opt.ba_refine_extra_params = False
-    out = work / "sparse"
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
-    pc.set_random_seed(cfg.seed)
+    pc.set_random_seed(seed)
     models = dict(pc.incremental_mapping(str(db), str((ds.root / IMAGES_DIR).resolve()), str(out), options=opt))
     if not models:
         return None
@@ -204,22 +210,39 @@ def _basis(axis: np.ndarray) -> np.ndarray:
 def _consensus(rot: np.ndarray, known: np.ndarray, tries: int = 12) -> tuple[int, np.ndarray, np.ndarray]:
     """(reference frame, hinge axis, inliers (F,) bool): the relative rotations of a rigid part's frames share one
     axis; a misregistered frame does not. Each of up to `tries` frames with a known state is tried as the reference
-    (it may be misregistered itself) and the one whose axis most frames agree with (within `OFF_AXIS_DEG`) wins."""
+    (it may be misregistered itself); the axis is the one most frames agree with (within `OFF_AXIS_DEG`), drawn
+    from the frames' own turn directions (one wild frame must not set it), then refitted on those that agree."""
     best: tuple[int, int, np.ndarray, np.ndarray] | None = None
     cands = np.flatnonzero(known)
     cands = cands[np.linspace(0, len(cands) - 1, min(tries, len(cands))).round().astype(int)]
     for ref in cands:
         vecs = np.stack([_rotvec(r) for r in np.einsum("fij,kj->fik", rot, rot[ref])])
-        axis = _principal(vecs)
+        axis = _vote_axis(vecs)
         inl = np.ones(len(vecs), bool)
         for _ in range(3):  # refit on the frames that agree
-            off = np.degrees(np.linalg.norm(vecs - np.outer(vecs @ axis, axis), axis=1))
-            inl = off < OFF_AXIS_DEG
+            inl = _off_axis_deg(vecs, axis) < OFF_AXIS_DEG
             axis = _principal(vecs[inl]) if inl.sum() >= 2 else axis
         if best is None or inl.sum() > best[1]:
             best = (int(ref), int(inl.sum()), axis, inl)
     assert best is not None
     return best[0], best[2], best[3]
+
+
+def _off_axis_deg(vecs: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """(F,) how far each rotation vector (F, 3) turns about anything but `axis`, in degrees."""
+    return np.degrees(np.linalg.norm(vecs - np.outer(vecs @ axis, axis), axis=1))
+
+
+def _vote_axis(vecs: np.ndarray, candidates: int = 64) -> np.ndarray:
+    """The turn direction of one of the frames that turn clearly, the one the most frames agree with."""
+    turn = np.degrees(np.linalg.norm(vecs, axis=1))
+    big = np.flatnonzero(turn > 2 * OFF_AXIS_DEG)
+    if not len(big):
+        return _principal(vecs)  # nothing turns beyond the noise: any axis will do (a slide)
+    big = big[np.linspace(0, len(big) - 1, min(candidates, len(big))).round().astype(int)]
+    axes = vecs[big] / np.linalg.norm(vecs[big], axis=1, keepdims=True)
+    votes = [int((_off_axis_deg(vecs, a) < OFF_AXIS_DEG).sum()) for a in axes]
+    return axes[int(np.argmax(votes))]
 
 
 def _principal(vecs: np.ndarray) -> np.ndarray:
@@ -262,7 +285,7 @@ def _fit_hinge(pv: PartViews, states: np.ndarray, known: np.ndarray, vecs: np.nd
     rate, c = _robust_line(states[known], angle[known])
     if rate < 0:
         axis, angle, rate, c = -axis, -angle, -rate, -c
-    extra["off_axis_deg"] = round(float(np.degrees(np.median(np.linalg.norm(vecs - np.outer(angle, axis), axis=1)))), 3)
+    extra["off_axis_deg"] = round(float(np.median(_off_axis_deg(vecs, axis))), 3)
     # rotation at each frame relative to the rest pose (state 0), as measured
     moved = _axis_angle(axis, angle - c)
     rest_rot = _axis_angle(axis, np.array([c]))[0] @ pv.rot[ref]  # reconstruction -> world at state 0
@@ -284,13 +307,32 @@ def _fit_hinge(pv: PartViews, states: np.ndarray, known: np.ndarray, vecs: np.nd
 
 
 def _state_rmse(motion: np.ndarray, rate: float, states: np.ndarray, known: np.ndarray) -> float:
-    """How well the measured motion alone gives the known states (a check of the fit and of the labels)."""
+    """How well the measured motion alone gives the known states (a check of the fit and of the labels); infinite
+    when the fit found no motion (all known states alike, or the part did not move)."""
+    if not abs(rate) > 1e-12 or not known.any():
+        return float("inf")
     return round(float(np.sqrt(np.mean((motion[known] / rate - states[known]) ** 2))), 4)
 
 
+def _still_frames(rot: np.ndarray) -> np.ndarray:
+    """(F,) bool: the frames whose rotation (F, 3, 3) stays within max(SLIDE_MAX_DEG, 3 x the median) of the
+    frames' mean orientation (recomputed on the kept frames, so a flipped frame does not pull it)."""
+    from scipy.spatial.transform import Rotation
+
+    rots = Rotation.from_matrix(rot)
+    keep = np.ones(len(rot), bool)
+    for _ in range(3):
+        dev = np.degrees((rots * rots[keep].mean().inv()).magnitude())
+        keep = dev <= max(SLIDE_MAX_DEG, 3 * float(np.median(dev)))
+    return keep
+
+
 def _fit_slide(pv: PartViews, states: np.ndarray, known: np.ndarray, extra: dict) -> tuple[Articulation, dict]:
-    """sigma u_f + C_f = b0 + s_f v over the frames with a known state: scale, rest position, motion per state."""
-    idx = np.flatnonzero(known)
+    """sigma u_f + C_f = b0 + s_f v over the frames with a known state that keep the part's usual orientation (a
+    slide does not turn: a frame that does is misregistered): scale, rest position, motion per state."""
+    still = _still_frames(pv.rot)
+    extra["slide_rejected"] = int((~still).sum())
+    idx = np.flatnonzero(known & still)
     k = len(idx)
     eye = np.broadcast_to(np.eye(3), (k, 3, 3))
     a = np.concatenate([pv.u[idx, :, None], -eye, -states[idx, None, None] * eye], axis=2).reshape(3 * k, 7)
@@ -300,9 +342,36 @@ def _fit_slide(pv: PartViews, states: np.ndarray, known: np.ndarray, extra: dict
     axis = v / max(rate, 1e-12)
     pos = sigma * pv.u + pv.centre
     along = (pos - b0) @ axis
-    extra.update(scale=float(sigma), state_rmse_from_pose=_state_rmse(along, rate, states, known),
+    extra.update(scale=float(sigma), state_rmse_from_pose=_state_rmse(along, rate, states, known & still),
                  pos_residual=float(np.median(np.linalg.norm(pos[idx] - b0 - np.outer(states[idx], v), axis=1))))
     return Articulation("slide", axis, b0, rate, extra), extra
+
+
+def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known: np.ndarray,
+                 cfg: MotionConfig) -> tuple[Articulation | None, dict[str, Any]]:
+    """The part's motion from its own reconstruction; states, known (N,) over the dataset's frames.
+
+    The mapper is run with up to `cfg.attempts` seeds on the same matches, until a motion gives the labelled states
+    within half of MAX_STATE_RMSE: a nearly planar part sometimes comes out bent or with a flipped view, which the
+    labels tell. The best attempt is returned (None when none registered enough frames with a known state)."""
+    db = match_part(pc, ds, names, part / "masks", part, cfg)
+    best: tuple[Articulation | None, dict[str, Any]] = (None, {"registered": 0})
+    for a in range(cfg.attempts):
+        rec = map_part(pc, ds, db, part / "sparse" / str(a), cfg, cfg.seed + a)
+        pv = part_views(rec, ds) if rec is not None else None
+        n = 0 if pv is None else len(pv.frames)
+        if pv is None or n < cfg.min_registered or int(known[pv.frames].sum()) < cfg.min_known:
+            if best[0] is None:
+                best = (None, {"registered": max(n, best[1]["registered"])})
+            continue
+        motion, fig = fit_motion(pv, states[pv.frames], known[pv.frames])
+        fig["attempt"] = a
+        if best[0] is None or fig["state_rmse_from_pose"] < best[1]["state_rmse_from_pose"]:
+            best = (motion, fig)
+        if fig["state_rmse_from_pose"] <= MAX_STATE_RMSE / 2:
+            break
+    best[1]["attempts"] = a + 1
+    return best
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -353,24 +422,22 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                              f"will move it)", cause="motion-unseen", object=name)
                     continue
                 with NativeLog(part / "colmap.log", cfg.verbose):
-                    rec = reconstruct_part(pc, ds, names, part / "masks", part, cfg)
-                pv = part_views(rec, ds) if rec is not None else None
-                st["registered"] = 0 if pv is None else len(pv.frames)
-                ok = pv is not None and len(pv.frames) >= cfg.min_registered
-                if ok and int(known[pv.frames, o].sum()) < cfg.min_known:
-                    ok = False
-                if not ok:
+                    motion, fig = measure_part(pc, ds, names, part, states[:, o], known[:, o], cfg)
+                st.update({k: v if not isinstance(v, float) or np.isfinite(v) else None for k, v in fig.items()})
+                if motion is None:
                     rep.warn(f"'{name}': its own reconstruction registered {st['registered']} frames "
                              f"(need {cfg.min_registered}, {cfg.min_known} with a known state): no motion measured; "
                              f"label more frames where it moves, or film it with more texture in view",
                              cause="motion-unregistered", object=name)
                     continue
-                motion, fig = fit_motion(pv, states[pv.frames, o], known[pv.frames, o])
-                st.update(kind=motion.kind, **fig)
-                if not fig["state_rmse_from_pose"] <= MAX_STATE_RMSE:
-                    rep.warn(f"'{name}': the measured {motion.kind} gives the labelled states only within "
-                             f"{fig['state_rmse_from_pose']:.2f} (RMSE > {MAX_STATE_RMSE}): not used; check its "
-                             f"labels and masks", cause="motion-inconsistent", object=name)
+                st["kind"] = motion.kind
+                rmse = fig["state_rmse_from_pose"]
+                if not rmse <= MAX_STATE_RMSE:
+                    how = (f"gives the labelled states only within {rmse:.2f} (RMSE > {MAX_STATE_RMSE})"
+                           if np.isfinite(rmse) else "does not change with the labelled states")
+                    rep.warn(f"'{name}': the measured {motion.kind} {how}, best of {fig['attempts']} "
+                             f"reconstructions: not used; check its labels and masks",
+                             cause="motion-inconsistent", object=name)
                     continue
                 motions[name] = motion
         write_articulation(ds_path, motions, {"source": "interreal motions"})

@@ -73,7 +73,9 @@ class SamplerConfig:
     samples: int = 24  # final samples per ray
     anneal_steps: int = 1000  # proposal weight annealing (K-planes)
     anneal_slope: float = 10.0
-    near: float = 0.05  # metres: closest sample from a camera
+    near: float = 0.05  # scene units: closest sample from a camera (at least; see near_auto)
+    near_auto: float = 0.5  # near = max(near, this share of the closest SfM point depth any camera sees; 0 = off):
+    # nothing filmed is nearer, and a floater in front of an untextured close-up has nowhere to sit
 
 
 @dataclass

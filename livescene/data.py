@@ -109,6 +109,29 @@ def scene_box(ds: LiveSceneDataset) -> tuple[np.ndarray, np.ndarray, str]:
 # ----------------------------------------------------------------------------------------------------------------
 # Dataset -> tensors
 # ----------------------------------------------------------------------------------------------------------------
+def closest_point_depth(ds: LiveSceneDataset, c2w_gl: np.ndarray, intrinsics: list[Intrinsics],
+                        share: float = 1.0) -> float | None:
+    """The smallest depth at which any camera sees the SfM point cloud: per camera the `share` percentile of the
+    depths of the points that project into its image (a stray point or two must not set it), then the minimum.
+    None without `sparse_pc.ply`. Nothing the capture filmed lies much nearer than this to a camera."""
+    ply = ds.root / "sparse_pc.ply"
+    pts = _read_ply_points(ply) if ply.exists() else None
+    if pts is None:
+        return None
+    best = np.inf
+    for c2w, intr in zip(c2w_gl, intrinsics):
+        cv = opengl_to_opencv(c2w)
+        cam = (pts - cv[:3, 3]) @ cv[:3, :3]
+        z = cam[:, 2]
+        front = z > 1e-9
+        u = intr.fl_x * cam[front, 0] / z[front] + intr.cx
+        v = intr.fl_y * cam[front, 1] / z[front] + intr.cy
+        seen = z[front][(u >= 0) & (u < intr.w) & (v >= 0) & (v < intr.h)]
+        if len(seen) >= 10:
+            best = min(best, float(np.percentile(seen, share)))
+    return best if np.isfinite(best) else None
+
+
 def split_indices(n: int, every: int, offset: int) -> tuple[list[int], list[int]]:
     """(train, held_out) frame positions: every `every`-th frame from `offset` is held out."""
     if every <= 1 or n < 2:

@@ -28,7 +28,7 @@ from interreal.report import StageReport
 
 from . import losses as L
 from .config import TrainConfig, apply_overrides, from_dict, load_preset, preset_names, resolve_sizes
-from .data import RayData, Views, load_views
+from .data import RayData, Views, closest_point_depth, load_views
 from .device import JEMALLOC_ENV, configure_threads, describe, reexec_with_jemalloc, select_device
 from .errors import DivergenceError, LiveSceneError
 from .field import LiveSceneModel
@@ -70,6 +70,10 @@ def build_model(cfg: TrainConfig, views: Views) -> tuple[TrainConfig, LiveSceneM
     """Resolve the scene-driven sizes and build the model (its parameter count ignores the object count)."""
     cfg = from_dict(cfg.to_dict())
     cfg.model = resolve_sizes(cfg.model, views.scene_info())
+    if cfg.sampler.near_auto > 0:
+        closest = closest_point_depth(views.dataset, views.c2w_gl, views.intrinsics)
+        if closest is not None:
+            cfg.sampler.near = max(cfg.sampler.near, round(cfg.sampler.near_auto * closest, 4))
     n = views.dataset.n_objects
     if n > cfg.model.max_objects:
         # more objects than slots: widen the slots (only the probability field's and the variable's input and
@@ -438,7 +442,7 @@ class Trainer:
               f"{self.data.w}x{self.data.h}, {ds.n_objects} objects, device {describe(self.device)}\n"
               f"  model: {params:,} parameters (planes {m.resolution}x{m.scales} k={m.k_resolution} "
               f"f={m.features}; proposals {m.proposal_resolutions}; variable {m.var_resolution} nodes; box from "
-              f"{self.views.box_source})", flush=True)
+              f"{self.views.box_source}; samples from {cfg.sampler.near:g} in front of a camera)", flush=True)
         if self.model.motions is not None:
             rigid = [self.views.names[o] for o in self.model.motions.rigid(ds.n_objects)]
             print(f"  rigid parts (articulation.json): {', '.join(rigid)}; read at k = {m.part_k}", flush=True)

@@ -471,3 +471,41 @@ def test_final_evaluation_shrinks_to_a_tenth_of_a_short_time_limit(tmp_path):
     assert tr.final_side() == 8
     tr.max_minutes = 0.0  # no time limit: always the configured size
     assert tr.final_side() == 40
+
+
+def test_near_plane_from_the_closest_sfm_point_any_camera_sees(tmp_path):
+    """near = max(near, near_auto x the closest point depth): a floater in front of an untextured close-up has
+    nowhere to sit, and nothing the cameras filmed is clipped. A stray point or two does not set it; without a
+    point cloud (or with near_auto 0) the configured near stays."""
+    import trimesh
+
+    from livescene.data import closest_point_depth, load_views
+    from livescene.trainer import build_model
+
+    ds = toy_dataset(tmp_path / "ds", n_frames=8)
+    cfg = load_preset("tiny")
+    views = load_views(ds, cfg)
+    assert closest_point_depth(views.dataset, views.c2w_gl, views.intrinsics) is None
+    assert build_model(cfg, views)[0].sampler.near == cfg.sampler.near
+    rng = np.random.default_rng(0)
+    c2w = views.c2w_gl[3]
+    eye, ahead = c2w[:3, 3], -c2w[:3, 2]  # OpenGL: the camera looks down -z
+    near_pts = eye + 0.8 * ahead + rng.normal(scale=0.003, size=(300, 3))  # a wall 0.8 in front of camera 3
+    far_pts = rng.uniform(-3, 3, size=(4000, 3))
+    far_pts = far_pts[np.linalg.norm(far_pts[:, None] - views.c2w_gl[None, :, :3, 3], axis=-1).min(1) > 1.2]
+    stray = eye + 0.05 * ahead  # one point nearly on the lens: SfM noise
+    trimesh.PointCloud(np.vstack([near_pts, far_pts, stray[None]])).export(ds / "sparse_pc.ply")
+    closest = closest_point_depth(views.dataset, views.c2w_gl, views.intrinsics)
+    depths = []  # the wall's depth in every camera whose image it falls in (camera 3's 0.8 among them)
+    for c, intr in zip(views.c2w_gl, views.intrinsics):
+        local = (eye + 0.8 * ahead - c[:3, 3]) @ c[:3, :3]  # OpenGL camera axes
+        x, y = intr.fl_x * local[0] / -local[2] + intr.cx, intr.fl_y * -local[1] / -local[2] + intr.cy
+        if local[2] < 0 and 0 <= x < intr.w and 0 <= y < intr.h:
+            depths.append(-local[2])
+    assert 0.8 in np.round(depths, 6) and closest == pytest.approx(min(depths), abs=0.02)
+    resolved = build_model(cfg, views)[0]
+    assert resolved.sampler.near == pytest.approx(cfg.sampler.near_auto * closest, abs=1e-3)
+    assert resolved.sampler.near > cfg.sampler.near
+    assert build_model(resolved, views)[0].sampler.near == resolved.sampler.near  # resolving again changes nothing
+    cfg.sampler.near_auto = 0.0
+    assert build_model(cfg, views)[0].sampler.near == cfg.sampler.near

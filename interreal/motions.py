@@ -359,10 +359,9 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
     for a in range(cfg.attempts):
         rec = map_part(pc, ds, db, part / "sparse" / str(a), cfg, cfg.seed + a)
         pv = part_views(rec, ds) if rec is not None else None
-        n = 0 if pv is None else len(pv.frames)
-        if pv is None or n < cfg.min_registered or int(known[pv.frames].sum()) < cfg.min_known:
-            if best[0] is None:
-                best = (None, {"registered": max(n, best[1]["registered"])})
+        if pv is None or len(pv.frames) < cfg.min_registered or int(known[pv.frames].sum()) < cfg.min_known:
+            if best[0] is None and pv is not None:  # what the warning reports: the most any attempt registered
+                best[1]["registered"] = max(len(pv.frames), best[1]["registered"])
             continue
         motion, fig = fit_motion(pv, states[pv.frames], known[pv.frames])
         fig["attempt"] = a

@@ -60,6 +60,12 @@ def camera_rays(c2w_gl: np.ndarray, intr: Intrinsics, dirs_cam: np.ndarray | Non
 # ----------------------------------------------------------------------------------------------------------------
 # Scene box
 # ----------------------------------------------------------------------------------------------------------------
+def sparse_points(ds: LiveSceneDataset) -> np.ndarray | None:
+    """(P, 3) the SfM point cloud (`sparse_pc.ply`); None when it is missing, broken or nearly empty."""
+    ply = ds.root / "sparse_pc.ply"
+    return _read_ply_points(ply) if ply.exists() else None
+
+
 def _read_ply_points(path: Path) -> np.ndarray | None:
     try:
         import trimesh
@@ -79,8 +85,7 @@ def scene_box(ds: LiveSceneDataset) -> tuple[np.ndarray, np.ndarray, str]:
             return box[0], box[1], f"transforms.json:{key}"
     poses = np.stack([opengl_to_opencv(f.c2w) for f in ds.frames])
     centres = poses[:, :3, 3]
-    ply = ds.root / "sparse_pc.ply"
-    pts = _read_ply_points(ply) if ply.exists() else None
+    pts = sparse_points(ds)
     if pts is not None:
         lo, hi = np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
         lo, hi = np.minimum(lo, centres.min(0)), np.maximum(hi, centres.max(0))
@@ -114,8 +119,7 @@ def closest_point_depth(ds: LiveSceneDataset, c2w_gl: np.ndarray, intrinsics: li
     """The smallest depth at which any camera sees the SfM point cloud: per camera the `share` percentile of the
     depths of the points that project into its image (a stray point or two must not set it), then the minimum.
     None without `sparse_pc.ply`. Nothing the capture filmed lies much nearer than this to a camera."""
-    ply = ds.root / "sparse_pc.ply"
-    pts = _read_ply_points(ply) if ply.exists() else None
+    pts = sparse_points(ds)
     if pts is None:
         return None
     best = np.inf

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterable
@@ -197,8 +198,17 @@ class LiveSceneDataset:
         return (self.root / MASKS_DIR).is_dir() and all(mask_file(self.root, f.fid).exists() for f in self.frames)
 
     def load_mask(self, frame: Frame) -> np.ndarray:
-        """(H, W, objects + 1) bool, background last."""
-        return np.load(mask_file(self.root, frame.fid), allow_pickle=False).astype(bool)
+        """(H, W, objects + 1) bool, background last; DatasetError naming the file when it is not one (a float
+        0.5 cast to bool would be true in every channel)."""
+        path = mask_file(self.root, frame.fid)
+        try:
+            m = np.load(path, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as exc:
+            raise DatasetError(f"{path}: unreadable mask ({exc}); re-run `interreal masks`") from None
+        if m.ndim != 3 or m.dtype != bool:
+            raise DatasetError(f"{path}: a {m.ndim}-D {m.dtype} array of shape {m.shape}, expected bool (H, W, "
+                               f"objects + 1) with the background last; re-run `interreal masks`")
+        return m
 
     def label_matrix(self) -> tuple[np.ndarray, np.ndarray]:
         """(values, given): (N, M) float and bool arrays over frames x objects; unlabelled entries are 0 / False."""
@@ -249,20 +259,75 @@ def read_mapping(root: str | Path) -> dict[int, str]:
     path = Path(root) / MAPPING_FILE
     if not path.exists():
         return {}
-    raw = read_yaml(path) or {}
+    raw = _read_yaml_or_error(path, "name the objects 0, 1, ... (e.g. {0: fridge door})") or {}
     if not isinstance(raw, dict):
         raise DatasetError(f"{path}: expected a mapping of object id -> name, got {type(raw).__name__}")
-    return {int(k): str(v) for k, v in raw.items()}
+    out: dict[int, str] = {}
+    for k, v in raw.items():
+        try:
+            out[int(k)] = str(v)
+        except (TypeError, ValueError):
+            raise DatasetError(f"{path}: object id {k!r} is not an integer; fix the file (ids 0, 1, ...)") from None
+    return out
 
 
-def read_labels(root: str | Path) -> dict[str, dict[str, float]]:
+def _read_yaml_or_error(path: Path, hint: str) -> Any:
+    try:
+        return read_yaml(path)
+    except (OSError, yaml.YAMLError, UnicodeDecodeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DatasetError(f"{path} is not valid YAML ({first}); {hint}") from None
+
+
+def read_labels_raw(root: str | Path) -> dict[str, Any]:
+    """key_frame_value.yaml as written, bad entries included ({} when absent): what the label tools edit, so a
+    hand-made mistake can be listed and overwritten with our tools instead of breaking them."""
     path = Path(root) / LABELS_FILE
     if not path.exists():
         return {}
-    raw = read_yaml(path) or {}
+    raw = _read_yaml_or_error(path, "fix it by hand, or move it away and set the labels again") or {}
     if not isinstance(raw, dict):
-        raise DatasetError(f"{path}: expected frame -> {{object: value}}, got {type(raw).__name__}")
-    return {str(k): {str(n): float(v) for n, v in (entry or {}).items()} for k, entry in raw.items()}
+        raise DatasetError(f"{path}: expected {{frame_00042: {{object: value}}}}, got a {type(raw).__name__}; "
+                           "fix it by hand, or move it away and set the labels again")
+    return {str(k): ({str(n): v for n, v in entry.items()} if isinstance(entry, dict) else ({} if entry is None else entry))
+            for k, entry in raw.items()}
+
+
+def label_value_problem(value: Any) -> str | None:
+    """Why a stored label cannot be a state (None when it is a finite number in [0, 1])."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        try:
+            v = float(str(value).strip())
+        except ValueError:
+            return f"{value!r} is not a number"
+        if isinstance(value, bool):
+            return f"{value!r} is not a number"
+    else:
+        v = float(value)
+    if not math.isfinite(v):
+        return f"{value!r} is not a finite number"
+    if not 0.0 <= v <= 1.0:
+        return f"{value!r} is outside [0, 1]"
+    return None
+
+
+def read_labels(root: str | Path) -> dict[str, dict[str, float]]:
+    """Frame key -> {object: state}; DatasetError naming the file and entry on anything that is not a state in
+    [0, 1] (never clipped: a 5.0 is a mistake, not a fully open door)."""
+    path = Path(root) / LABELS_FILE
+    out: dict[str, dict[str, float]] = {}
+    for key, entry in read_labels_raw(root).items():
+        if not isinstance(entry, dict):
+            raise DatasetError(f"{path}: entry {key}: expected {{object name: value}}, got {entry!r}; fix it with "
+                               f"`interreal label {Path(root)} --set OBJECT {key} VALUE` or by hand")
+        for name, value in entry.items():
+            why = label_value_problem(value)
+            if why is not None:
+                raise DatasetError(f"{path}: entry {key} / {name}: {why}; fix it with "
+                                   f"`interreal label {Path(root)} --set {name!r} {key} VALUE` (or --unset)")
+            out.setdefault(key, {})[name] = float(value)
+        out.setdefault(key, {})
+    return out
 
 
 def read_prompts(root: str | Path) -> dict[str, str]:
@@ -412,8 +477,14 @@ def write_mapping(root: str | Path, mapping: dict[int, str]) -> None:
 
 
 def write_labels(root: str | Path, labels: dict[str, dict[str, float]]) -> None:
-    ordered = {k: {n: float(v) for n, v in labels[k].items()} for k in sorted(labels, key=_label_sort_key)}
+    ordered = {k: (_label_out(labels[k]) if isinstance(labels[k], dict) else labels[k])
+               for k in sorted(labels, key=_label_sort_key)}
     atomic.write_yaml(Path(root) / LABELS_FILE, ordered)
+
+
+def _label_out(entry: dict[str, Any]) -> dict[str, Any]:
+    """Numbers as floats; a bad entry the user has not repaired yet is written back as it was, not lost."""
+    return {n: (float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else v) for n, v in entry.items()}
 
 
 def write_prompts(root: str | Path, prompts: dict[str, str]) -> None:
@@ -468,7 +539,12 @@ class ValidationResult:
 
 
 def validate(root: str | Path, check_masks: bool = True) -> ValidationResult:
-    """Every problem that stops the official reader (or would make training wrong); never raises on garbage."""
+    """Every problem that stops the official reader (or would make training wrong); never raises on garbage.
+
+    Also names stages whose inputs changed since they ran (`interreal.provenance`: stale poses, masks, labels,
+    motions). `check_masks=False` is the quick mode for tools that validate before they start (`livescene`): image
+    and mask headers, end markers and staleness only, no per-pixel decoding (about 0.5 s for 300 frames instead of
+    10+ s); everything else is checked the same way, by the same code."""
     root = Path(root)
     problems: list[Problem] = []
     summary: dict[str, Any] = {"root": str(root)}
@@ -487,14 +563,14 @@ def validate(root: str | Path, check_masks: bool = True) -> ValidationResult:
     summary["objects"] = [mapping[i] for i in sorted(mapping)] if mapping else []
     labels = _validate_labels(root, mapping, frames, add)
     summary["labels_per_object"] = _labels_per_object(labels, mapping)
-    sizes = _validate_images(root, frames, meta, add)
+    sizes = _validate_images(root, frames, meta, add, decode=check_masks)
     summary["size"] = sorted({f"{w}x{h}" for (w, h) in sizes.values()})
-    if check_masks:
-        _validate_masks(root, frames, mapping, sizes, add)
+    _validate_masks(root, frames, mapping, sizes, add, pixels=check_masks)
     summary["masks"] = bool(frames) and all(mask_file(root, fid).exists() for fid, _ in frames)
     summary["poses"] = sum(1 for _, e in frames if "transform_matrix" in e)
     summary["articulated"] = _validate_articulation(root, mapping, add)
     _validate_reports(root, add)
+    _validate_provenance(root, add)
     return ValidationResult(root, problems, summary)
 
 
@@ -564,6 +640,11 @@ def _validate_frames(root: Path, meta: dict, add) -> list[tuple[str, dict]]:
         fp = str(entry["file_path"])
         fp = _resolve_blender_path(root, fp) if blender else (fp[2:] if fp.startswith("./") else fp)
         entry = {**entry, "file_path": fp}
+        norm = os.path.normpath(fp)
+        if Path(fp).is_absolute() or os.path.isabs(norm) or norm == ".." or norm.startswith(".." + os.sep):
+            add("bad-file-path", where, f"file_path {fp!r} leaves the dataset folder: paths must be relative to it "
+                f"(e.g. images/frame_00042.png)")
+            continue
         fid = frame_id(fp)
         if not fid.isdigit():
             add("bad-frame-id", where, f"frame id '{fid}' of {fp} is not a number (name frames like frame_00042.png)")
@@ -664,15 +745,12 @@ def _validate_labels(root: Path, mapping: dict[int, str], frames: list[tuple[str
             if mapping and name not in names:
                 add("label-unknown-object", where, f"object {name!r} is not in mapping.yaml ({sorted(names)})")
                 continue
-            try:
-                v = float(value)
-            except (TypeError, ValueError):
-                add("label-bad-value", where, f"{name}: {value!r} is not a number")
+            why = label_value_problem(value)
+            if why is not None:
+                add("label-bad-value", where, f"{name}: {why} (states are numbers in [0, 1]; fix it with "
+                    f"`interreal label DS --set {name!r} {key} VALUE` or --unset)")
                 continue
-            if not math.isfinite(v) or not (0.0 <= v <= 1.0):
-                add("label-bad-value", where, f"{name}: {value!r} is not a finite value in [0, 1]")
-                continue
-            good.setdefault(str(key), {})[str(name)] = v
+            good.setdefault(str(key), {})[str(name)] = float(value)
     return good
 
 
@@ -685,26 +763,39 @@ def _labels_per_object(labels: dict, mapping: dict[int, str]) -> dict[str, int]:
     return counts
 
 
-def _image_size(path: Path) -> tuple[int, int] | None:
-    """(w, h) from the header, or None when the file is not a decodable image."""
+def _image_size(path: Path, decode: bool = True) -> tuple[int, int] | None:
+    """(w, h), or None when the file is not a whole image. `decode`: decode every pixel (sure, ~15 ms a frame);
+    else the header and the format's end marker (a truncated PNG / JPEG lacks it; ~0.3 ms a frame)."""
     try:
         from PIL import Image
 
         with Image.open(path) as im:
-            im.load()
-            return im.size
+            if decode:
+                im.load()
+            size, fmt = im.size, im.format
     except Exception:  # noqa: BLE001 - any decoder failure is a listed problem, never a crash
         return None
+    if not decode and fmt in ("PNG", "JPEG"):
+        try:
+            with open(path, "rb") as fh:
+                fh.seek(max(0, path.stat().st_size - 64))
+                tail = fh.read()
+        except OSError:
+            return None
+        if (b"IEND" if fmt == "PNG" else b"\xff\xd9") not in tail:
+            return None
+    return size
 
 
-def _validate_images(root: Path, frames: list[tuple[str, dict]], meta: dict | None, add) -> dict[str, tuple[int, int]]:
+def _validate_images(root: Path, frames: list[tuple[str, dict]], meta: dict | None, add,
+                     decode: bool = True) -> dict[str, tuple[int, int]]:
     sizes: dict[str, tuple[int, int]] = {}
     for fid, entry in frames:
         path = root / entry["file_path"]
         if not path.exists():
             add("missing-image", path, "image listed in transforms.json does not exist")
             continue
-        size = _image_size(path)
+        size = _image_size(path, decode)
         if size is None:
             add("bad-image", path, "not a readable image (truncated or not an image file)")
             continue
@@ -721,7 +812,26 @@ def _validate_images(root: Path, frames: list[tuple[str, dict]], meta: dict | No
     return sizes
 
 
-def _validate_masks(root: Path, frames, mapping: dict[int, str], sizes: dict[str, tuple[int, int]], add) -> None:
+def npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
+    """(shape, dtype) of a .npy file from its header alone (ValueError when it is not a .npy file)."""
+    with open(path, "rb") as fh:
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+        elif version == (2, 0):
+            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+        else:
+            raise ValueError(f"unsupported .npy version {version}")
+        need = int(np.prod(shape)) * dtype.itemsize
+        have = os.fstat(fh.fileno()).st_size - fh.tell()
+    if have < need:
+        raise ValueError(f"truncated: {have} of {need} data bytes")
+    return tuple(shape), dtype
+
+
+def _validate_masks(root: Path, frames, mapping: dict[int, str], sizes: dict[str, tuple[int, int]], add,
+                    pixels: bool = True) -> None:
+    """Each mask's header (shape, dtype, channels: fast) and, with `pixels`, that every pixel has one channel."""
     if not frames:
         return
     n_channels = len(mapping) + 1 if mapping else None
@@ -731,23 +841,33 @@ def _validate_masks(root: Path, frames, mapping: dict[int, str], sizes: dict[str
             add("missing-mask", path, f"no mask for {entry['file_path']} (run `interreal masks DS --keyframes DIR`)")
             continue
         try:
+            shape, dtype = npy_header(path)
+        except (OSError, ValueError) as exc:
+            add("bad-mask", path, f"unreadable .npy: {exc}; re-run `interreal masks`")
+            continue
+        if len(shape) != 3:
+            add("bad-mask", path, f"{len(shape)}-D array of shape {shape}: expected (H, W, objects + 1) with one "
+                "channel per object and the background last; re-run `interreal masks`")
+            continue
+        if dtype != np.dtype(bool):
+            add("bad-mask", path, f"stored as {dtype}, not bool: a mask is true/false per channel (a float 0.5 would "
+                "read as true everywhere); re-run `interreal masks`")
+            continue
+        if fid in sizes and (shape[1], shape[0]) != sizes[fid]:
+            add("mask-size", path, f"mask is {shape[1]}x{shape[0]}, image is {sizes[fid][0]}x{sizes[fid][1]}")
+            continue
+        if n_channels is not None and shape[2] != n_channels:
+            add("mask-channels", path, f"{shape[2]} channels, expected {n_channels} ({len(mapping)} objects + "
+                "background last): the object list changed after the masks were made; re-run `interreal masks`")
+            continue
+        if not pixels:
+            continue
+        try:
             m = np.load(path, allow_pickle=False)
         except Exception as exc:  # noqa: BLE001 - truncated/garbage .npy is a listed problem
-            add("bad-mask", path, f"unreadable .npy: {exc}")
+            add("bad-mask", path, f"unreadable .npy: {exc}; re-run `interreal masks`")
             continue
-        if m.ndim != 3:
-            add("bad-mask", path, f"shape {m.shape}: expected (H, W, objects + 1)")
-            continue
-        if m.dtype != bool and not (np.issubdtype(m.dtype, np.number) and np.isin(m, (0, 1)).all()):
-            add("bad-mask", path, f"dtype {m.dtype} with values other than 0/1")
-            continue
-        if fid in sizes and (m.shape[1], m.shape[0]) != sizes[fid]:
-            add("mask-size", path, f"mask is {m.shape[1]}x{m.shape[0]}, image is {sizes[fid][0]}x{sizes[fid][1]}")
-            continue
-        if n_channels is not None and m.shape[2] != n_channels:
-            add("mask-channels", path, f"{m.shape[2]} channels, expected {n_channels} ({len(mapping)} objects + background last)")
-            continue
-        count = m.astype(bool).sum(axis=2)
+        count = m.sum(axis=2)
         bad = int((count != 1).sum())
         if bad:
             ys, xs = np.nonzero(count != 1)
@@ -781,9 +901,25 @@ def _validate_reports(root: Path, add) -> None:
             add("bad-report", path, "not valid JSON")
             continue
         status = rep.get("status") if isinstance(rep, dict) else None
+        if not isinstance(rep, dict) or status not in ("running", "failed", "ok"):
+            add("bad-report", path, f"no valid status ({status!r}): the stage's report is damaged; re-run the stage")
+            continue
         if status in ("running", "failed"):
             add("stage-incomplete", path, f"stage '{rep.get('stage', path.stem)}' is {status}: "
                 f"{rep.get('error', 'it did not finish')}; re-run it")
+
+
+def _validate_provenance(root: Path, add) -> None:
+    """Stages whose inputs changed since they ran (frames from another video, masks propagated again, ...)."""
+    from .provenance import stale_stages
+
+    try:
+        stale = stale_stages(root)
+    except OSError as exc:
+        add("stale", root / REPORTS_DIR, f"cannot compare the stages' inputs ({exc})")
+        return
+    for s in stale:
+        add("stale", root / REPORTS_DIR / f"{s.stage}.json", s.message.removeprefix("stale: "))
 
 
 def format_summary(result: ValidationResult) -> str:
@@ -820,7 +956,8 @@ def format_problems(result: ValidationResult, per_kind: int = 0) -> str:
 # ----------------------------------------------------------------------------------------------------------------
 def add_arguments(p) -> None:
     p.add_argument("dataset", type=Path, help="dataset folder")
-    p.add_argument("--no-masks", action="store_true", help="skip the (slow) per-pixel mask checks")
+    p.add_argument("--no-masks", action="store_true",
+                   help="quick mode: image and mask headers only, no per-pixel decoding (what livescene runs)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--brief", action="store_true", help="list only the first 10 problems of each kind")
     p.epilog = ("examples:\n  interreal validate out/room\n  interreal validate out/room --brief\n"

@@ -13,6 +13,7 @@ Image folders keep every image (index = position in name order) unless a target 
 from __future__ import annotations
 
 import shutil
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -25,6 +26,7 @@ from . import atomic
 from .conventions import IMAGES_DIR, frame_name
 from .errors import InputError
 from .ingest import Source, open_source
+from .provenance import source_key
 from .report import StageReport, finished_with, fingerprint, tree_fingerprint
 
 DEFAULT_VIDEO_TARGET = 300  # ns-process-data's default, so datasets are comparable
@@ -175,16 +177,29 @@ def extract_frames(source: str | Path, ds: str | Path, *, target: int | None = N
     if done is not None:
         print(f"frames: {len(done)} frames in {ds / IMAGES_DIR} are up to date (same source and settings)")
         return done
-    rep = StageReport(ds, "frames", inputs={"source": str(source)}, settings=settings, resume_key=key) if report else None
+    src_key = source_key(source)
+    inputs = {"source": str(source), "fingerprints": {"source": {"files": src_key, "content": src_key}} if src_key else {}}
+    rep = StageReport(ds, "frames", inputs=inputs, settings=settings, resume_key=key) if report else None
     ctx = rep if rep is not None else _Null()
     with ctx:
         t0 = time.perf_counter()
         src = open_source(source)
+        skipped = src.info.extra.get("skipped") or []
+        if skipped:
+            msg = (f"{len(skipped)} file(s) in {source} are not images and were left out: {', '.join(skipped[:5])}"
+                   + (" ..." if len(skipped) > 5 else ""))
+            print(f"warning: {msg}", file=sys.stderr)
+            if rep is not None:
+                rep.warn(msg, cause="not-an-image", files=skipped[:50])
         cfg = SelectConfig(target=target, every=every, keep_all=_is_folder_source(src))
         with _step(rep, "analyse") as st:
             indices, stats = analyse(src)
             st["frames"] = len(indices)
         n_usable = int(stats.usable.sum())
+        if len(indices) < 3:
+            what = "images" if _is_folder_source(src) else "decodable frames"
+            raise InputError(f"{source} has only {len(indices)} {what}; at least 3 views of the scene are needed "
+                             "for poses: add more")
         if n_usable < 3:
             why = _unusable_reason(stats)
             raise InputError(f"{source}: only {n_usable} of {len(indices)} frames are usable ({why}); "
@@ -196,17 +211,21 @@ def extract_frames(source: str | Path, ds: str | Path, *, target: int | None = N
         out_dir = ds / IMAGES_DIR
         stage = ds / f".{IMAGES_DIR}.partial"
         shutil.rmtree(stage, ignore_errors=True)
-        stage.mkdir(parents=True)
         written: list[Path] = []
         size = None
-        with _step(rep, "write") as st:
-            for i, rgb in src.frames(indices=chosen, long_side=long_side, progress="frames"):
-                name = frame_name(i) + ".png"
-                atomic.write_image(stage / name, rgb)
-                written.append(out_dir / name)
-                size = (rgb.shape[1], rgb.shape[0])
-            st["frames"] = len(written)
-        _swap_dir(stage, out_dir)
+        try:  # a failed write (disk full, read-only) leaves no partial folder behind
+            stage.mkdir(parents=True)
+            with _step(rep, "write") as st:
+                for i, rgb in src.frames(indices=chosen, long_side=long_side, progress="frames"):
+                    name = frame_name(i) + ".png"
+                    atomic.write_image(stage / name, rgb)
+                    written.append(out_dir / name)
+                    size = (rgb.shape[1], rgb.shape[0])
+                st["frames"] = len(written)
+            _swap_dir(stage, out_dir)
+        except BaseException:
+            shutil.rmtree(stage, ignore_errors=True)
+            raise
         if rep is not None:
             pos = {int(i): k for k, i in enumerate(indices)}
             sel = [pos[i] for i in chosen]

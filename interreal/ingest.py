@@ -39,6 +39,7 @@ _MAGIC: tuple[tuple[int, bytes, str], ...] = (
     (8, b"AVI ", "avi"),
 )
 IMAGE_FORMATS = {"jpeg", "png", "tiff", "bmp", "webp"}
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".heic", ".heif", ".gif"}
 
 
 def sniff(path: str | Path) -> str | None:
@@ -355,16 +356,27 @@ def open_source(path: str | Path) -> Source:
         raise InputError(f"{path} is a single file that is not a video; put photos or RAW files in a folder "
                          "and pass the folder")
     files = _list_folder(path)
+    # a stray note or sidecar file (notes.txt, .xmp, .json) is left out with a warning; a file that claims to be an
+    # image by its name but is not one is an error (a damaged photo must not silently shift the frame indices)
+    stray = [p for p in files if p.suffix.lower() not in RAW_SUFFIXES | IMAGE_SUFFIXES and sniff(p) not in IMAGE_FORMATS]
+    files = [p for p in files if p not in stray]
+    if not files:
+        raise InputError(f"{path} holds no images ({', '.join(p.name for p in stray[:5])}"
+                         f"{', ...' if len(stray) > 5 else ''}): give a folder of images or RAW files, or a video")
     raws = [p for p in files if p.suffix.lower() in RAW_SUFFIXES]
     others = [p for p in files if p.suffix.lower() not in RAW_SUFFIXES]
     if raws and others:
         raise InputError(f"{path} mixes RAW files ({raws[0].name}, ...) and other files ({others[0].name}, ...): "
                          "keep one kind per folder")
     if raws:
-        return RawFolderSource(path, raws)
-    bad = [p.name for p in files if sniff(p) not in IMAGE_FORMATS]
-    if bad:
-        more = f" and {len(bad) - 5} more" if len(bad) > 5 else ""
-        raise InputError(f"{path} holds files that are not images: {', '.join(bad[:5])}{more}; remove them "
-                         "(supported: JPEG, PNG, TIFF, BMP, WebP by content; RAW by extension)")
-    return ImageFolderSource(path, files)
+        source: Source = RawFolderSource(path, raws)
+    else:
+        bad = [p.name for p in files if sniff(p) not in IMAGE_FORMATS]
+        if bad:
+            more = f" and {len(bad) - 5} more" if len(bad) > 5 else ""
+            raise InputError(f"{path} holds files that are not images: {', '.join(bad[:5])}{more}; remove them "
+                             "(supported: JPEG, PNG, TIFF, BMP, WebP by content; RAW by extension)")
+        source = ImageFolderSource(path, files)
+    if stray:
+        source.info.extra["skipped"] = [p.name for p in stray]
+    return source

@@ -9,7 +9,9 @@ without losing each other's changes.
 
 from __future__ import annotations
 
+import argparse
 import csv
+import difflib
 import json
 import math
 import os
@@ -22,12 +24,12 @@ from typing import Any, Iterable, Iterator
 
 import yaml
 
-from . import atomic
-from .conventions import IMAGES_DIR, MAPPING_FILE, frame_index
-from .dataset import list_images, load_transforms, read_labels, read_mapping, read_prompts, read_yaml
-from .dataset import write_labels, write_mapping, write_prompts
+from . import atomic, provenance
+from .conventions import IMAGES_DIR, LABELS_FILE, MAPPING_FILE, MASKS_DIR, frame_index
+from .dataset import label_value_problem, list_images, load_transforms, read_labels_raw, read_mapping, read_prompts
+from .dataset import npy_header, read_yaml, write_labels, write_mapping, write_prompts
 from .errors import DatasetError, InputError
-from .report import StageReport
+from .report import StageReport, read_report
 
 KEYFRAMES_DIR = "keyframes"  # where `interreal annotate` stores keyframe masks (the `--keyframes DIR` format)
 LOCK_FILE = ".edit.lock"
@@ -258,14 +260,17 @@ def rename_object(ds: str | Path, old: str, new: str) -> None:
         if new in mapping.values():
             raise InputError(f"cannot rename {old!r} to {new!r}: an object called {new!r} exists already")
         require_object(mapping, old)
+        masks_fresh = provenance.unchanged(ds, "masks", ["keyframes"])
         kf = ds / KEYFRAMES_DIR
         if kf.is_dir():
             for js in sorted(kf.glob("*.json")):
                 _rename_in_labelme(js, old, new)
-        labels = read_labels(ds)
-        if any(old in entry for entry in labels.values()):
+        if masks_fresh:  # a renamed object keeps its masks: the keyframes' new label text does not make them stale
+            provenance.refresh(ds, "masks", ["keyframes"])
+        labels = read_labels_raw(ds)
+        if any(isinstance(entry, dict) and old in entry for entry in labels.values()):
             for entry in labels.values():
-                if old in entry:
+                if isinstance(entry, dict) and old in entry:
                     entry[new] = entry.pop(old)
             write_labels(ds, labels)
         prompts = read_prompts(ds)
@@ -299,13 +304,17 @@ def set_label(ds: str | Path, name: str, frame: Any, value: Any, *, unit: Unit |
     v = normalise_value(value, unit, where=f"{name} @ {frame}")
     frames = dataset_frames(ds)
     key = resolve_frame(frames, frame)
-    if add_new_object:
+    if add_new_object and name not in read_objects(ds).values():
+        refuse_new_objects_with_masks(ds, [name])
         add_object(ds, name)
     with edit_lock(ds):
         require_object(read_objects(ds), name)
-        labels = read_labels(ds)
-        previous = labels.get(key, {}).get(name)
-        labels.setdefault(key, {})[name] = v
+        labels = read_labels_raw(ds)
+        entry = labels.get(key)
+        if not isinstance(entry, dict):  # a broken entry (`frame_00042: abc`) is replaced: that is the repair
+            entry = labels[key] = {}
+        previous = entry.get(name)
+        entry[name] = v
         write_labels(ds, labels)
     return {"key": key, "object": name, "value": v, "previous": previous}
 
@@ -315,8 +324,12 @@ def unset_label(ds: str | Path, name: str, frame: Any) -> float | None:
     ds = Path(ds)
     key = resolve_frame(dataset_frames(ds), frame)
     with edit_lock(ds):
-        labels = read_labels(ds)
+        labels = read_labels_raw(ds)
         entry = labels.get(key, {})
+        if not isinstance(entry, dict):  # a broken entry: unsetting it removes it
+            labels.pop(key, None)
+            write_labels(ds, labels)
+            return entry
         previous = entry.pop(name, None)
         if previous is None:
             return None
@@ -326,15 +339,21 @@ def unset_label(ds: str | Path, name: str, frame: Any) -> float | None:
         return previous
 
 
-def list_labels(ds: str | Path) -> list[tuple[str, str, float]]:
-    """(frame key, object, value) for every label, in frame then object-id order."""
+def list_labels(ds: str | Path) -> list[tuple[str, str, Any]]:
+    """(frame key, object, value) for every label, in frame then object-id order. Values are as stored: a bad
+    one (a word, NaN, 5.0) is listed too, so it can be seen and overwritten; `check_labels` says what is wrong.
+    An entry that is not {object: value} at all is listed with the object ''."""
     ds = Path(ds)
     order = {n: i for i, n in read_objects(ds).items()}
-    labels = read_labels(ds)
-    rows = []
+    labels = read_labels_raw(ds)
+    rows: list[tuple[str, str, Any]] = []
     for key in sorted(labels, key=lambda k: (_safe_index(k), k)):
-        for name in sorted(labels[key], key=lambda n: (order.get(n, 1 << 20), n)):
-            rows.append((key, name, labels[key][name]))
+        entry = labels[key]
+        if not isinstance(entry, dict):
+            rows.append((key, "", entry))
+            continue
+        for name in sorted(entry, key=lambda n: (order.get(n, 1 << 20), n)):
+            rows.append((key, name, entry[name]))
     return rows
 
 
@@ -360,10 +379,16 @@ def check_labels(ds: str | Path) -> list[str]:
             problems.append(f"{key}: the key does not end in a frame number (use frame_00042)")
         elif frames and idx not in frames:
             problems.append(f"{key}: frame {idx} is not among the dataset's frames")
+        if name == "":
+            problems.append(f"{key}: {value!r} is not {{object name: value}}; replace it with `--set OBJECT {key} "
+                            f"VALUE` or remove it with `--unset '' {key}`")
+            continue
         if name not in names:
             problems.append(f"{key}: object {name!r} is not in mapping.yaml")
-        if not (math.isfinite(value) and 0.0 <= value <= 1.0):
-            problems.append(f"{key}: {name} = {value!r} is not in [0, 1]")
+        why = label_value_problem(value)
+        if why is not None:
+            problems.append(f"{key}: {name} = {why}; repair it with `interreal label DS --set {name!r} {key} VALUE` "
+                            f"or --unset {name!r} {key}")
     return problems
 
 
@@ -384,11 +409,35 @@ def format_table(ds: str | Path) -> str:
     lines = ["  ".join(h.ljust(w) for h, w in zip(["frame"] + names, width))]
     lines.append("  ".join("-" * w for w in width))
     for key, entry in by_key.items():
-        cells = [key] + [f"{entry[n]:.3f}" if n in entry else "-" for n in names]
+        cells = [key] + [_cell(entry[n]) if n in entry else "-" for n in names]
         lines.append("  ".join(c.ljust(w) for c, w in zip(cells, width)))
     counts = [sum(1 for e in by_key.values() if n in e) for n in names]
     lines.append("  ".join(c.ljust(w) for c, w in zip(["labels"] + [str(c) for c in counts], width)))
     return "\n".join(lines)
+
+
+def _cell(value: Any) -> str:
+    """A label as the table shows it; a bad one is flagged with '!' (the warnings below the table say why)."""
+    return f"{float(value):.3f}" if label_value_problem(value) is None else f"!{value!r}"
+
+
+def refuse_new_objects_with_masks(ds: str | Path, names: Iterable[str]) -> None:
+    """Adding an object to a masked dataset would leave every mask one channel short: refuse, say what to do."""
+    names = list(names)
+    if not names:
+        return
+    ds = Path(ds)
+    masks = sorted((ds / MASKS_DIR).glob("*.npy")) if (ds / MASKS_DIR).is_dir() else []
+    if not masks:
+        return
+    try:
+        channels = npy_header(masks[0])[0][-1]
+    except (OSError, ValueError, IndexError):
+        channels = "?"
+    raise InputError(f"{ds} has masks for {len(read_objects(ds))} object(s) ({channels} channels with the "
+                     f"background): adding {names} would leave every mask with the wrong channel count; draw the new "
+                     f"object(s) on the keyframes (`interreal annotate {ds}`) and re-run `interreal masks`, or fix "
+                     "the object name(s) if they are typos")
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -490,23 +539,37 @@ def _refuse_new_objects(file: str | Path, names: Iterable[str], known: Iterable[
     known = list(known)
     new = [n for n in names if n not in known]
     if new:
-        raise InputError(f"{file}: unknown objects {new} (objects: {known}); import with --add-object to add them")
+        hints = []
+        for n in new:
+            close = difflib.get_close_matches(n, known, n=1, cutoff=0.6)
+            if close:
+                hints.append(f"{n!r}: did you mean {close[0]!r}?")
+        raise InputError(f"{file}: unknown objects {new} (objects: {known}); "
+                         + (" ".join(hints) + " " if hints else "")
+                         + "fix the names, or import with --add-objects to add them as new objects")
 
 
-def import_labels(ds: str | Path, file: str | Path, *, degrees: Any = None, cm: Any = None, add_objects: bool = True,
+def import_labels(ds: str | Path, file: str | Path, *, degrees: Any = None, cm: Any = None,
+                  add_objects: bool | None = None,
                   replace: bool = False, skip_unknown_frames: bool = False, report: bool = True) -> dict[str, Any]:
     """Import labels from CSV or YAML into DS; every row is checked before anything is written.
 
     Physical values: a `unit` CSV column (deg, rad, cm, mm, m) with the range from `degrees` / `cm`
     ('LO:HI' or (lo, hi)), or, without the column, the one range given applies to every value.
     Bad input raises InputError before reports/labels.json is touched, so a typo does not mark the dataset failed.
-    Returns {"imported", "added_objects", "skipped_frames", "labels", "objects"}.
+    Objects the dataset does not have are refused (with a did-you-mean) unless `add_objects`; by default (None)
+    they are added only to a dataset with no objects yet. A masked dataset never gets a new object (its masks
+    would be a channel short). Returns {"imported", "added_objects", "skipped_frames", "labels", "objects"}.
     """
     ds = Path(ds)
     parsed = parse_import(ds, file, degrees=degrees, cm=cm, skip_unknown_frames=skip_unknown_frames)
+    known = list(read_objects(ds).values())
+    if add_objects is None:
+        add_objects = not known
     if not add_objects:
-        _refuse_new_objects(file, parsed.names(), read_objects(ds).values())
-    ctx = StageReport(ds, "labels", inputs={"file": str(file)},
+        _refuse_new_objects(file, parsed.names(), known)
+    refuse_new_objects_with_masks(ds, [n for n in parsed.names() if n not in known])
+    ctx = StageReport(ds, "labels", inputs={"file": str(file), "fingerprints": labels_fingerprints(ds, replace)},
                       settings={"units": {k: [u.lo, u.hi] for k, u in parsed.units.items()}, "add_objects": add_objects,
                                 "replace": replace, "skip_unknown_frames": skip_unknown_frames}) if report else None
     with (ctx or _null()) as rep:
@@ -519,10 +582,14 @@ def import_labels(ds: str | Path, file: str | Path, *, degrees: Any = None, cm: 
                 mapping[len(mapping)] = n
             if new_names:
                 _write_objects(ds, mapping)
-            labels = {} if replace else read_labels(ds)
+            before = {} if not (ds / LABELS_FILE).exists() else read_labels_raw(ds)
+            labels = {} if replace else {k: (dict(v) if isinstance(v, dict) else v) for k, v in before.items()}
             for key, name, value in parsed.rows:
-                labels.setdefault(key, {})[name] = value
-            write_labels(ds, labels)
+                if not isinstance(labels.get(key), dict):
+                    labels[key] = {}
+                labels[key][name] = value
+            if labels != before or not (ds / LABELS_FILE).exists():  # unchanged: keep the file (and its stamp)
+                write_labels(ds, labels)
         result = {"imported": len(parsed.rows), "added_objects": new_names, "skipped_frames": parsed.skipped,
                   "labels": sum(len(e) for e in labels.values()), "objects": [mapping[i] for i in sorted(mapping)]}
         if rep is not None:
@@ -531,6 +598,22 @@ def import_labels(ds: str | Path, file: str | Path, *, degrees: Any = None, cm: 
                 rep.warn(f"{len(parsed.skipped)} label row(s) name frames that are not in the dataset and were skipped",
                          cause="unknown-frame", frames=parsed.skipped[:50])
         return result
+
+
+def labels_fingerprints(ds: Path, replace: bool) -> dict[str, Any]:
+    """What the labels were set on: the capture the frames came from. Labels kept from an earlier capture keep
+    that capture's fingerprint (so `validate` goes on calling them stale) until they are replaced as a whole."""
+    fps = provenance.fingerprints(ds, ["capture"])
+    if replace or "capture" not in fps:
+        return fps
+    before = provenance.recorded(read_report(ds, "labels")).get("capture")
+    try:
+        has_labels = bool(read_labels_raw(ds))
+    except DatasetError:
+        has_labels = True
+    if before and has_labels and before.get("content") != fps["capture"].get("content"):
+        fps["capture"] = before
+    return fps
 
 
 @contextmanager
@@ -561,8 +644,10 @@ def add_arguments(p) -> None:
                    help="values are angles; LO degrees = state 0, HI = state 1 (negative LO: --degrees=-10:80)")
     p.add_argument("--cm", metavar="LO:HI", help="values are distances in cm; LO = state 0, HI = state 1")
     p.add_argument("--replace", action="store_true", help="with --from: replace all labels instead of merging")
-    p.add_argument("--no-new-objects", action="store_true",
-                   help="with --from: refuse objects that are not in mapping.yaml instead of adding them")
+    p.add_argument("--add-objects", action="store_true",
+                   help="with --from: add objects the file names that mapping.yaml does not have (without it they "
+                        "are refused with a did-you-mean, unless the dataset has no objects yet)")
+    p.add_argument("--no-new-objects", action="store_true", help=argparse.SUPPRESS)  # the default now
     p.add_argument("--skip-unknown-frames", action="store_true",
                    help="with --from: skip rows whose frame is not in the dataset (with a warning) instead of failing")
     p.epilog = """examples:
@@ -612,9 +697,11 @@ def _plan(ds: Path, args) -> _Plan:
     if args.from_file:
         imported = parse_import(ds, args.from_file, degrees=args.degrees, cm=args.cm,
                                 skip_unknown_frames=args.skip_unknown_frames)
-        if args.no_new_objects:
+        if names and not (args.add_objects and not args.no_new_objects):
             _refuse_new_objects(args.from_file, imported.names(), names)
         names += [n for n in imported.names() if n not in names]
+    known = set(read_objects(ds).values())
+    refuse_new_objects_with_masks(ds, [n for n in adds + (imported.names() if imported else []) if n not in known])
     frames = dataset_frames(ds) if (args.set or args.unset) else {}
     sets = []
     for name, frame, value in args.set:
@@ -635,7 +722,9 @@ def main(args) -> int:
     if edits:
         plan = _plan(ds, args)
         done: list[str] = []
-        with StageReport(ds, "labels", inputs={"from": str(args.from_file) if args.from_file else None},
+        fps = labels_fingerprints(ds, bool(args.replace and args.from_file))
+        with StageReport(ds, "labels", inputs={"from": str(args.from_file) if args.from_file else None,
+                                               "fingerprints": fps},
                          settings={"degrees": args.degrees, "cm": args.cm}) as rep:
             for name in plan.adds:
                 oid = add_object(ds, name)
@@ -649,7 +738,7 @@ def main(args) -> int:
                 done.append(f"renamed {plan.rename[0]!r} -> {plan.rename[1]!r}")
             if args.from_file:
                 res = import_labels(ds, args.from_file, degrees=args.degrees, cm=args.cm,
-                                    add_objects=not args.no_new_objects, replace=args.replace,
+                                    add_objects=True, replace=args.replace,
                                     skip_unknown_frames=args.skip_unknown_frames, report=False)
                 rep.figures["imported"] = res["imported"]
                 done.append(f"imported {res['imported']} label(s) from {args.from_file}"
@@ -673,7 +762,8 @@ def main(args) -> int:
             print(line)
     if args.list or not edits:
         if args.json:
-            print(json.dumps([{"frame": k, "object": n, "value": v} for k, n, v in list_labels(ds)], indent=2))
+            print(json.dumps([{"frame": k, "object": n, "value": v if isinstance(v, (int, float, str)) else repr(v)}
+                              for k, n, v in list_labels(ds)], indent=2))
         else:
             print(format_table(ds))
     for problem in check_labels(ds):

@@ -23,11 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from . import atomic
+from . import atomic, provenance
 from .conventions import ARTICULATION_FILE, IMAGES_DIR, opengl_to_opencv
 from .dataset import Articulation, known_states, load_dataset, write_articulation
 from .errors import InputError
-from .report import StageReport, files_fingerprint, finished_with, fingerprint, warning_lines
+from .report import StageReport, finished_with, fingerprint, warning_lines
 
 MOTIONS_DIR = "motions"  # DS/motions/<object>/: the part reconstructions (database, masks, model)
 SLIDE_MAX_DEG = 3.0  # a part that turns less than this between states 0 and 1 (or at all) slides
@@ -389,6 +389,7 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
     if unknown:
         raise InputError(f"unknown motion options {sorted(unknown)}")
     cfg = MotionConfig(**{k: v for k, v in opts.items() if v is not None})
+    fps = provenance.fingerprints(ds_path, ["transforms", "labels", "masks", "mapping"])  # before anything is read
     ds = load_dataset(ds_path)
     if not ds.n_objects:
         raise InputError(f"{ds_path} has no objects (mapping.yaml): nothing moves")
@@ -403,9 +404,9 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
     states, known = known_states(times, labels, given)
     pc = _pycolmap(cfg.verbose)
     work = ds_path / MOTIONS_DIR
-    inputs = {"frames": len(ds.frames), "objects": ds.object_names}
-    key = fingerprint(asdict(cfg), files_fingerprint([ds_path / "transforms.json", ds_path / "key_frame_value.yaml"]),
-                      files_fingerprint(sorted((ds_path / "masks").glob("*.npy"))))
+    inputs = {"frames": len(ds.frames), "objects": ds.object_names, "fingerprints": fps}
+    # by content: a re-run of an earlier stage that rewrote the same bytes does not measure everything again
+    key = fingerprint(asdict(cfg), {k: v["content"] for k, v in sorted(fps.items())})
     done = finished_with(ds_path, "motions", key)
     if done is not None and (ds_path / ARTICULATION_FILE).exists() and not force:
         return dict(done["figures"], reused=True)

@@ -15,10 +15,11 @@ from typing import Any, Callable, Iterable
 
 import yaml
 
+from . import provenance
 from .conventions import frame_index
 from .errors import InputError, StageError
 from .frames import extract_frames
-from .report import StageReport, warning_lines
+from .report import StageReport, read_report, warning_lines
 from .sfm import add_sfm_options, estimate_poses, sfm_options, summary_lines
 
 KEYFRAME_SUFFIXES = (".png", ".json")
@@ -101,21 +102,48 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
         with rep.step("frames") as st:
             paths = extract_frames(source, ds, target=target, every=every, long_side=long_side, keep=sorted(keep))
             st["frames"] = len(paths)
-        if propagate is not None:
-            with rep.step("masks"):
-                propagate(ds, Path(keyframes))
+        # a stage not asked for but already in the dataset runs again when its inputs changed (new frames, ...)
+        kf_dir = Path(keyframes) if keyframes is not None else _stale_keyframes(ds)
+        if kf_dir is not None:
+            propagate = propagate or _stage_fn("interreal.masks", "propagate", "--keyframes")
+            with rep.step("masks") as st:
+                st["keyframes"] = str(kf_dir)
+                propagate(ds, kf_dir)
         with rep.step("poses"):
             fig = estimate_poses(ds, **sfm)
         if import_labels is not None:
-            with rep.step("labels"):
-                import_labels(ds, Path(labels))
-        if motions and propagate is not None and import_labels is not None:
+            # labels of another capture (the frames now come from another video) are replaced, not merged
+            replace = any(s.stage == "labels" and "capture" in s.reasons for s in provenance.stale_stages(ds))
+            with rep.step("labels") as st:
+                st["replace"] = replace
+                import_labels(ds, Path(labels), **({"replace": True} if replace else {}))
+        had_motions = read_report(ds, "motions") is not None
+        if motions and ((kf_dir is not None and import_labels is not None) or had_motions):
             from .motions import estimate_motions
 
             with rep.step("motions") as st:
                 st.update(estimate_motions(ds))
-        rep.figures.update({"frames": len(paths), "registered": fig.get("registered"), "total": fig.get("total")})
-    return fig
+        left = [s.message for s in provenance.stale_stages(ds)]
+        for message in left:
+            rep.warn(message, cause="stale")
+        rep.figures.update({"frames": len(paths), "registered": fig.get("registered"), "total": fig.get("total"),
+                            "stale": left})
+    return {**fig, "stale": left}
+
+
+def _stale_keyframes(ds: Path) -> Path | None:
+    """The keyframe folder the dataset's masks were made from, when those masks are stale and it is still there
+    (not when the frames come from another capture: its keyframes would be drawn on other images)."""
+    stale = [s for s in provenance.stale_stages(ds) if s.stage == "masks"]
+    if not stale or "capture" in stale[0].reasons:
+        return None
+    rec = provenance.recorded(read_report(ds, "masks")).get("keyframes") or {}
+    folder = Path(str(rec.get("path", "")))
+    folder = ds / folder if rec.get("inside") else folder
+    if rec.get("path") and folder.is_dir():
+        print(f"masks: the frames changed since the masks were made: propagating again from {folder}")
+        return folder
+    return None
 
 
 def add_arguments(p) -> None:
@@ -142,6 +170,7 @@ def main(args) -> int:
                   every=args.every, long_side=args.long_side, motions=args.motions, **sfm_options(args))
     print("\n".join(warning_lines(args.dataset, ["frames", "masks"] if args.keyframes else ["frames"])
                     + summary_lines(fig, args.dataset)
-                    + (warning_lines(args.dataset, ["labels", "motions"]) if args.labels else [])))
+                    + (warning_lines(args.dataset, ["labels", "motions"]) if args.labels else [])
+                    + [f"  warning: {m}" for m in fig.get("stale", [])]))
     print(f"process: done in {time.perf_counter() - t0:.1f} s -> {args.dataset}")
     return 0

@@ -127,6 +127,12 @@ class StageReport:
         atomic.write_json(report_path(self.root, self.stage), self.data)
 
     def __enter__(self) -> "StageReport":
+        # a report's temporary file left by a killed run (atomic writes rename it into place when they finish)
+        for tmp in report_path(self.root, self.stage).parent.glob(f".{self.stage}.json.*.tmp"):
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
         self.write()
         return self
 

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from . import atomic
+from . import atomic, provenance
 from .conventions import (
     IMAGES_DIR,
     MASKS_DIR,
@@ -755,10 +755,13 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
     work.mkdir(parents=True, exist_ok=True)
     names = [p.name for p in images]
     settings = asdict(cfg)
-    with StageReport(ds, "poses", inputs={"images": len(images)}, settings=settings) as rep:
+    fps = provenance.fingerprints(ds, ["images"])  # what validate compares later (stale poses)
+    with StageReport(ds, "poses", inputs={"images": len(images), "fingerprints": fps}, settings=settings) as rep:
         state_path = work / "state.json"
         state = _load_state(state_path)
         mask_dir, mask_src, mask_files = (prepare_masks(ds, images, work) if cfg.use_masks else (None, "off", []))
+        if mask_src in ("sfm_masks", "masks.npy"):
+            fps.update(provenance.fingerprints(ds, ["sfm_masks" if mask_src == "sfm_masks" else "masks"]))
         rep.data["inputs"]["masks"] = {"source": mask_src, "files": len(mask_files)}
         if cfg.use_masks and mask_src == "none":
             rep.warn("no object masks (DS/masks or DS/sfm_masks): moving parts may corrupt poses; run "
@@ -1055,7 +1058,8 @@ def import_poses(ds: Path, file: Path, images: list[Path], cfg: SfMConfig) -> di
         raise InputError(f"--poses {file} does not exist")
     h, w = _image_hw(images[0])
     look = _name_lookup(ds, images)
-    with StageReport(ds, "poses", inputs={"images": len(images), "poses_file": str(file)},
+    with StageReport(ds, "poses", inputs={"images": len(images), "poses_file": str(file),
+                                          "fingerprints": provenance.fingerprints(ds, ["images"])},
                      settings={"import": True, **asdict(cfg)}) as rep:
         if file.is_dir():
             frames, intr, T = _import_colmap(file, look, cfg)

@@ -8,14 +8,16 @@ parameter count never depends on the number of objects (a fixed number of object
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
+import typing
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from .errors import LiveSceneError
+from .errors import ConfigError, LiveSceneError
 
 PRESETS_DIR = Path(__file__).resolve().parent / "presets"
 
@@ -131,38 +133,160 @@ class TrainConfig:
         return dataclasses.asdict(self)
 
 
-def _update(obj: Any, values: dict[str, Any], where: str) -> None:
+def _update(obj: Any, values: Any, where: str) -> None:
+    if values is None:
+        return
+    if not isinstance(values, dict):
+        raise ConfigError(f"{where or 'the configuration'}: expected a group of settings (KEY: VALUE), got {values!r}")
     names = {f.name: f for f in fields(obj)}
-    for key, value in (values or {}).items():
+    hints = typing.get_type_hints(type(obj))
+    for key, value in values.items():
+        path = f"{where}.{key}" if where else str(key)
         if key not in names:
-            raise LiveSceneError(f"{where}: unknown setting '{key}'; known: {', '.join(sorted(names))}")
+            close = difflib.get_close_matches(str(key), names, n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise ConfigError(f"unknown setting '{path}'{hint}; known{' in ' + where if where else ''}: "
+                              f"{', '.join(sorted(names))}")
         current = getattr(obj, key)
         if is_dataclass(current):
-            _update(current, value, f"{where}.{key}")
+            _update(current, value, path)
         else:
-            setattr(obj, key, _coerce(value, current, f"{where}.{key}"))
+            setattr(obj, key, _coerce(value, hints[key], path))
 
 
-def _coerce(value: Any, current: Any, where: str) -> Any:
-    try:
-        if isinstance(current, bool):
-            return value if isinstance(value, bool) else str(value).lower() in ("1", "true", "yes", "on")
-        if isinstance(current, int):
-            return int(value)
-        if isinstance(current, float):
-            return float(value)
-        if isinstance(current, list):
-            items = value if isinstance(value, (list, tuple)) else [v for v in str(value).split(",") if v]
-            kind = type(current[0]) if current else float
-            return [kind(v) for v in items]
-    except (TypeError, ValueError) as exc:
-        raise LiveSceneError(f"{where}: cannot use {value!r} ({exc})") from exc
+_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
+
+
+def _coerce(value: Any, kind: Any, where: str) -> Any:
+    """`value` as the field's annotated type (int, float, bool, str, list[int], list[float]); a value that is not
+    one (0.5 for a count, "maybe" for a switch, NaN for a weight) is a ConfigError naming the setting."""
+    if typing.get_origin(kind) is list:
+        (item,) = typing.get_args(kind)
+        items = value if isinstance(value, (list, tuple)) else [v for v in str(value).split(",") if v.strip()]
+        return [_coerce(v, item, f"{where}[{i}]") for i, v in enumerate(items)]
+    if kind is bool:
+        if isinstance(value, bool):
+            return value
+        text = str(value).strip().lower()
+        if text in _TRUE or text in _FALSE:
+            return text in _TRUE
+        raise ConfigError(f"{where}: {value!r} is not true or false")
+    if kind is int:
+        if isinstance(value, bool):
+            raise ConfigError(f"{where}: expected a whole number, got {value!r}")
+        if isinstance(value, int):
+            return value
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}: expected a whole number, got {value!r}") from None
+        if not math.isfinite(number) or number != int(number):
+            raise ConfigError(f"{where}: expected a whole number, got {value!r}")
+        return int(number)
+    if kind is float:
+        if isinstance(value, bool):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}: expected a number, got {value!r}") from None
+        if not math.isfinite(number):
+            raise ConfigError(f"{where}: {value!r} is not a finite number")
+        return number
+    if kind is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected text, got {value!r}")
+        return value
     return value
+
+
+# allowed values and ranges, checked before training starts (`check_config`); a setting out of range would
+# otherwise surface as "training diverged" or a crash deep inside the model
+CHOICES: dict[str, tuple[str, ...]] = {
+    "model.background_k": ("slice", "zero"),
+    "model.mask_render": ("auto", "logits", "probs"),
+    "model.mask_shapes": ("detach", "grad"),
+    "model.motion": ("auto", "rigid", "none"),
+    "model.part_k": ("rest", "state"),
+    "model.background": ("white", "black", "learned"),
+}
+_POS, _NONNEG, _ONE, _UNIT = (0.0, None, True), (0.0, None, False), (1.0, None, False), (0.0, 1.0, False)
+RANGES: dict[str, tuple[float | None, float | None, bool]] = {  # path: (low, high, low excluded)
+    "steps": _ONE, "batch_rays": _ONE, "lr": _POS, "lr_final_ratio": _UNIT, "warmup": _NONNEG,
+    "keyframe_fraction": _UNIT, "reg_every": _ONE, "eval_every": _NONNEG, "log_every": _ONE,
+    "ckpt_every": _NONNEG, "keep_checkpoints": _ONE, "holdout_every": _NONNEG, "holdout_offset": _NONNEG,
+    "max_side": _NONNEG, "eval_max_side": _ONE, "final_eval_frames": _NONNEG, "final_eval_max_side": _ONE,
+    "seed": _NONNEG, "max_divergence_retries": _NONNEG,
+    "model.resolution": _NONNEG, "model.scales": _ONE, "model.k_resolution": _NONNEG, "model.features": _ONE,
+    "model.hidden": _ONE, "model.geo_features": _ONE, "model.sh_degree": (1.0, 4.0, False),
+    "model.prob_resolution": _NONNEG, "model.prob_features": _ONE, "model.prob_hidden": _ONE,
+    "model.proposal_resolutions": _NONNEG, "model.proposal_features": _ONE, "model.proposal_hidden": _ONE,
+    "model.var_resolution": _NONNEG, "model.var_features": _ONE, "model.var_hidden": _ONE,
+    "model.max_objects": _ONE, "model.reject_threshold": _UNIT, "model.capacity": _POS,
+    "model.max_resolution": (8.0, None, False), "model.max_k_resolution": (2.0, None, False),
+    "sampler.proposal_samples": _ONE, "sampler.samples": _ONE, "sampler.anneal_steps": _NONNEG,
+    "sampler.anneal_slope": _POS, "sampler.near": _POS, "sampler.near_auto": _NONNEG,
+    "loss.focal_alpha": _UNIT,
+}
+# "0 = auto" sizes: 0, or at least 2 nodes (one node cannot interpolate)
+AUTO_SIZES = ("model.resolution", "model.k_resolution", "model.prob_resolution", "model.proposal_resolutions",
+              "model.var_resolution")
+
+
+def _leaves(obj: Any, prefix: str = "") -> list[tuple[str, Any]]:
+    out = []
+    for f in fields(obj):
+        value = getattr(obj, f.name)
+        path = f"{prefix}{f.name}"
+        out += _leaves(value, path + ".") if is_dataclass(value) else [(path, value)]
+    return out
+
+
+def check_config(cfg: TrainConfig) -> TrainConfig:
+    """Every setting of the right type and in range (ConfigError naming the first that is not); returns cfg.
+
+    Runs before training, so a bad setting is named instead of showing up as a diverged loss."""
+    for path, value in _leaves(cfg):
+        group, _, name = path.rpartition(".")
+        owner = _resolve(cfg, group)
+        kind = typing.get_type_hints(type(owner))[name]
+        _coerce(value, kind, path)  # type (a preset or checkpoint may bypass the overrides' coercion)
+        if path in CHOICES and value not in CHOICES[path]:
+            raise ConfigError(f"setting {path} = {value!r}: choose one of {', '.join(CHOICES[path])}")
+        items = value if isinstance(value, list) else [value]
+        low, high, strict = RANGES.get(path, _NONNEG if kind in (float, int) or path.startswith("loss.") else
+                                       (None, None, False))
+        for v in items:
+            if not isinstance(v, (int, float)) or isinstance(v, bool):
+                continue
+            if path in AUTO_SIZES and v == 1:
+                raise ConfigError(f"setting {path} = {value}: use 0 (automatic) or at least 2")
+            if (low is not None and (v < low or (strict and v == low))) or (high is not None and v > high):
+                rng = (f"> {low:g}" if strict else f">= {low:g}") if high is None else f"in [{low:g}, {high:g}]"
+                raise ConfigError(f"setting {path} = {value}: must be {rng}")
+    if not cfg.model.scales:
+        raise ConfigError("model.scales is empty: give at least one scale, e.g. [1, 2]")
+    if len(cfg.sampler.proposal_samples) != len(cfg.model.proposal_resolutions) or not cfg.sampler.proposal_samples:
+        raise ConfigError(f"sampler.proposal_samples {cfg.sampler.proposal_samples} needs one count per proposal "
+                          f"level of model.proposal_resolutions {cfg.model.proposal_resolutions}")
+    if cfg.scene_box:
+        box = cfg.scene_box
+        if len(box) != 6:
+            raise ConfigError(f"scene_box needs 6 numbers (x0 y0 z0 x1 y1 z1), got {box}")
+        if not all(lo < hi for lo, hi in zip(box[:3], box[3:])):
+            raise ConfigError(f"scene_box {box}: each of x0 y0 z0 must be below x1 y1 z1")
+    return cfg
+
+
+def _resolve(cfg: Any, group: str) -> Any:
+    for part in filter(None, group.split(".")):
+        cfg = getattr(cfg, part)
+    return cfg
 
 
 def from_dict(values: dict[str, Any]) -> TrainConfig:
     cfg = TrainConfig()
-    _update(cfg, values, "config")
+    _update(cfg, values, "")
     return cfg
 
 
@@ -177,24 +301,44 @@ def load_preset(name: str | Path) -> TrainConfig:
         path = PRESETS_DIR / f"{name}.yaml"
     if not path.exists():
         raise LiveSceneError(f"preset {name!r} not found; choose from {', '.join(preset_names())} or give a YAML file")
-    values = yaml.safe_load(path.read_text()) or {}
+    try:
+        values = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ConfigError(f"preset {path} is not readable YAML: {_one_line(exc)}") from exc
+    if not isinstance(values, dict):
+        raise ConfigError(f"preset {path}: expected settings (KEY: VALUE), got {type(values).__name__}")
     values.setdefault("preset", path.stem)
-    return from_dict(values)
+    try:
+        return from_dict(values)
+    except ConfigError as exc:
+        raise ConfigError(f"preset {path}: {exc}") from exc
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
 
 
 def apply_overrides(cfg: TrainConfig, pairs: list[str]) -> TrainConfig:
     """`--set model.features=32 loss.var=0.5` style overrides."""
     for pair in pairs or []:
         if "=" not in pair:
-            raise LiveSceneError(f"--set expects KEY=VALUE (e.g. model.features=32), got {pair!r}")
+            raise ConfigError(f"--set expects KEY=VALUE (e.g. model.features=32), got {pair!r}")
         key, value = pair.split("=", 1)
         nested: dict[str, Any] = {}
         node = nested
         parts = key.strip().split(".")
+        if not all(parts):
+            raise ConfigError(f"--set {pair!r}: {key!r} is not a setting name (e.g. model.features=32)")
         for p in parts[:-1]:
             node = node.setdefault(p, {})
-        node[parts[-1]] = yaml.safe_load(value)
-        _update(cfg, nested, "--set")
+        try:
+            node[parts[-1]] = yaml.safe_load(value)
+        except yaml.YAMLError:
+            node[parts[-1]] = value  # not YAML: the setting's own type check names it
+        try:
+            _update(cfg, nested, "")
+        except ConfigError as exc:
+            raise ConfigError(f"--set {pair}: {exc}") from exc
     return cfg
 
 

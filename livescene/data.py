@@ -21,7 +21,7 @@ from interreal.conventions import onehot_to_index, opengl_to_opencv
 from interreal.dataset import Intrinsics, LiveSceneDataset, load_dataset
 
 from .config import SceneInfo, TrainConfig
-from .errors import LiveSceneError
+from .errors import InvalidDatasetError, LiveSceneError
 
 UNKNOWN = 255
 
@@ -57,6 +57,40 @@ def camera_rays(c2w_gl: np.ndarray, intr: Intrinsics, dirs_cam: np.ndarray | Non
     return origins.astype(np.float32), world.astype(np.float32), (1.0 / norm[:, 0]).astype(np.float32)
 
 
+def check_pose(value, where: str) -> np.ndarray:
+    """A camera-to-world matrix from user input (4x4, or 3x4 with the last row implied; 16 numbers), finite, with a
+    rotation part that is a rotation; else LiveSceneError naming `where`. A NaN camera renders a black image."""
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise LiveSceneError(f"{where}: a camera matrix must be numbers (4x4), got {value!r:.80}") from None
+    if m.shape == (16,):
+        m = m.reshape(4, 4)
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0, 0, 0, 1]])
+    if m.shape != (4, 4):
+        raise LiveSceneError(f"{where}: camera matrix has shape {'x'.join(map(str, m.shape)) or 'scalar'}, "
+                             f"expected 4x4 (or 3x4) camera-to-world")
+    if not np.isfinite(m).all():
+        raise LiveSceneError(f"{where}: camera matrix has non-finite values (NaN or inf)")
+    r = m[:3, :3]
+    if np.abs(r.T @ r - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(r) - 1) > 1e-3:
+        raise LiveSceneError(f"{where}: the camera matrix's 3x3 rotation is not a rotation (orthonormal, det +1)")
+    if not np.allclose(m[3], [0, 0, 0, 1]):
+        raise LiveSceneError(f"{where}: the camera matrix's last row is {m[3].tolist()}, expected [0, 0, 0, 1]")
+    return m
+
+
+def check_intrinsics(intr: Intrinsics, where: str, max_pixels: int = 64_000_000) -> Intrinsics:
+    """Finite, positive focal lengths and a sane image size (LiveSceneError naming `where`)."""
+    vals = [intr.fl_x, intr.fl_y, intr.cx, intr.cy]
+    if not (np.isfinite(vals).all() and intr.fl_x > 0 and intr.fl_y > 0):
+        raise LiveSceneError(f"{where}: intrinsics fl_x, fl_y, cx, cy = {vals} must be finite with positive focal lengths")
+    if intr.w < 1 or intr.h < 1 or intr.w * intr.h > max_pixels:
+        raise LiveSceneError(f"{where}: image size {intr.w}x{intr.h} is not between 1x1 and {max_pixels:,} pixels")
+    return intr
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # Scene box
 # ----------------------------------------------------------------------------------------------------------------
@@ -71,7 +105,8 @@ def _read_ply_points(path: Path) -> np.ndarray | None:
         import trimesh
 
         pc = trimesh.load(str(path))
-        pts = np.asarray(getattr(pc, "vertices", []), dtype=np.float64)
+        pts = np.asarray(getattr(pc, "vertices", []), dtype=np.float64).reshape(-1, 3)
+        pts = pts[np.isfinite(pts).all(axis=1)]  # a NaN point would make the box NaN
         return pts if len(pts) >= 10 else None
     except Exception:  # noqa: BLE001 - a broken point cloud only loses the better box
         return None
@@ -81,7 +116,7 @@ def scene_box(ds: LiveSceneDataset) -> tuple[np.ndarray, np.ndarray, str]:
     """(lo, hi, source) world-space box the fields cover."""
     for key in ("aabb", "scene_box"):
         if key in ds.extra:
-            box = np.asarray(ds.extra[key], dtype=np.float64).reshape(2, 3)
+            box = _box_of(ds.extra[key], f"{ds.root / 'transforms.json'} '{key}'")
             return box[0], box[1], f"transforms.json:{key}"
     poses = np.stack([opengl_to_opencv(f.c2w) for f in ds.frames])
     centres = poses[:, :3, 3]
@@ -109,6 +144,90 @@ def scene_box(ds: LiveSceneDataset) -> tuple[np.ndarray, np.ndarray, str]:
     lo = np.minimum(focus - radius, centres.min(0))
     hi = np.maximum(focus + radius, centres.max(0))
     return lo, hi, "cameras"
+
+
+def _box_of(value, where: str) -> np.ndarray:
+    """(2, 3) finite box with lo < hi from 6 numbers, else LiveSceneError naming `where`."""
+    try:
+        box = np.asarray(value, dtype=np.float64).reshape(2, 3)
+    except (TypeError, ValueError):
+        raise LiveSceneError(f"{where}: expected 6 numbers [[x0, y0, z0], [x1, y1, z1]], got {value!r}") from None
+    if not np.isfinite(box).all() or not (box[0] < box[1]).all():
+        raise LiveSceneError(f"{where}: {box.tolist()} is not a finite box with x0 < x1, y0 < y1, z0 < z1")
+    return box
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Checks: what the trainer reads must be right before it trains (else the optimiser gets the blame)
+# ----------------------------------------------------------------------------------------------------------------
+def require_valid(path: str | Path) -> None:
+    """The dataset passes `interreal validate` (the same checks, one code path), else InvalidDatasetError with
+    every problem listed. There is no override: a broken dataset trains or renders garbage.
+
+    One exception: a dataset with no masks at all is accepted (the colour field trains; grounding and mask figures
+    then say the run has no masks); some frames without a mask is an error."""
+    import dataclasses
+
+    from interreal.dataset import format_problems, validate
+
+    result = validate(path)
+    problems = result.problems
+    missing = [p for p in problems if p.kind == "missing-mask"]
+    if missing and len(missing) == result.summary.get("frames", -1):
+        problems = [p for p in problems if p.kind != "missing-mask"]
+    if problems:
+        listed = format_problems(dataclasses.replace(result, problems=problems), per_kind=5)
+        raise InvalidDatasetError(f"the dataset {path} is not valid, so livescene will not read it (fix it, then "
+                                  f"check with `interreal validate {path}`):\n{listed}")
+
+
+def require_valid_run_dataset(run_dir: str | Path, command: str) -> Path | None:
+    """Validate the dataset a run folder names (RUN/config.yaml 'dataset') before a command reads the run; the
+    path, or None when the run names none. A dataset that is gone only warns: what the command can do without it
+    (grounding by object name) still works, what needs it (rendering) says so when it loads the run."""
+    import yaml
+
+    cfg_path = Path(run_dir) / "config.yaml"
+    if not cfg_path.exists():
+        return None
+    try:
+        meta = yaml.safe_load(cfg_path.read_text(encoding="utf-8")) or {}
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise LiveSceneError(f"{cfg_path} is not readable YAML ({' '.join(str(exc).split())[:200]}): "
+                             f"the run folder is damaged") from exc
+    ds = meta.get("dataset") if isinstance(meta, dict) else None
+    if not ds:
+        return None
+    path = Path(str(ds))
+    if not path.exists():
+        import sys
+
+        print(f"livescene {command}: warning: the run's dataset {path} is gone (moved or deleted); commands that "
+              f"render need it (--dataset NEW_PATH where offered)", file=sys.stderr)
+        return None
+    require_valid(path)
+    return path
+
+
+def check_views(views: "Views") -> None:
+    """Numbers the model reads are finite and in range: poses, intrinsics, labels, the box (LiveSceneError naming
+    the frame) - a NaN here would only show up as a diverged loss."""
+    names = [f.fid for f in views.dataset.frames]
+    bad = [names[i] for i in range(len(names)) if not np.isfinite(views.c2w_gl[i]).all()]
+    if bad:
+        raise InvalidDatasetError(f"non-finite camera pose (transform_matrix) in frame(s) {', '.join(bad[:5])} of "
+                                  f"{views.dataset.root}: re-run `interreal poses`")
+    for i, it in enumerate(views.intrinsics):
+        vals = [it.fl_x, it.fl_y, it.cx, it.cy]
+        if not (np.isfinite(vals).all() and it.fl_x > 0 and it.fl_y > 0 and it.w > 0 and it.h > 0):
+            raise InvalidDatasetError(f"frame {names[i]} of {views.dataset.root}: intrinsics {vals} are not finite "
+                                      f"and positive")
+    ok = np.isfinite(views.labels) & (views.labels >= 0) & (views.labels <= 1)
+    if not ok[views.given].all():
+        i, k = np.argwhere(views.given & ~ok)[0]
+        raise InvalidDatasetError(f"label of '{views.names[k]}' on frame {names[i]} is {views.labels[i, k]!r}, "
+                                  f"not a value in [0, 1]: fix it with `interreal label`")
+    _box_of([views.box_lo.tolist(), views.box_hi.tolist()], f"scene box (from {views.box_source})")
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -208,6 +327,8 @@ def working_size(intr: Intrinsics, image_hw: tuple[int, int], max_side: int) -> 
 
 
 def load_views(path: str | Path, cfg: TrainConfig) -> Views:
+    """The dataset's cameras and labels, after `require_valid` (an invalid dataset is refused, never read)."""
+    require_valid(path)
     ds = load_dataset(path)
     if not ds.frames:
         raise LiveSceneError(f"{path}: transforms.json lists no frames")
@@ -220,6 +341,7 @@ def load_views(path: str | Path, cfg: TrainConfig) -> Views:
         w, h = working_size(base, first.shape[:2], cfg.max_side)
         intrs.append(base.scaled(w, h) if (w, h) != (base.w, base.h) else base)
     labels, given = ds.label_matrix()
+    raw_labels = labels
     train, held = split_indices(len(ds.frames), cfg.holdout_every, cfg.holdout_offset)
     given = given.copy()
     given[held] = False
@@ -229,9 +351,11 @@ def load_views(path: str | Path, cfg: TrainConfig) -> Views:
         lo, hi, src = np.asarray(cfg.scene_box[:3], float), np.asarray(cfg.scene_box[3:], float), "config"
     else:
         lo, hi, src = scene_box(ds)
-    return Views(dataset=ds, c2w_gl=np.stack([f.c2w for f in ds.frames]), intrinsics=intrs, times=frame_times(ds),
-                 labels=np.clip(labels, 0, 1), given=given, train=train, held_out=held,
-                 box_lo=lo.astype(np.float32), box_hi=hi.astype(np.float32), box_source=src)
+    views = Views(dataset=ds, c2w_gl=np.stack([f.c2w for f in ds.frames]), intrinsics=intrs, times=frame_times(ds),
+                  labels=raw_labels, given=given, train=train, held_out=held,
+                  box_lo=lo.astype(np.float32), box_hi=hi.astype(np.float32), box_source=src)
+    check_views(views)
+    return views
 
 
 def load_frame(views: Views, i: int) -> tuple[np.ndarray, np.ndarray | None]:

@@ -18,9 +18,9 @@ from interreal import atomic
 from interreal.dataset import Intrinsics
 
 from .data import load_frame, nearest_views
-from .errors import LiveSceneError
+from .errors import LiveSceneError, writing
 from .losses import psnr
-from .render import learned_frame_states, render_view
+from .render import RenderMeter, learned_frame_states, render_view
 
 
 class Truth(Protocol):
@@ -50,6 +50,7 @@ class CaptureTruth:
         if not (self.dir / "gt" / "states.json").exists():
             raise LiveSceneError(f"{self.dir}/gt/states.json not found: --gt must be an `interreal synth` capture folder")
         self.cap = Capture.open(self.dir)
+        check_same_capture(self.cap, views, self.dir)
         cols = []
         for n in views.names:
             if n not in self.cap.names:
@@ -168,6 +169,36 @@ class CaptureTruth:
             return None
 
 
+MAX_CENTRE_ERR_PCT = 5.0  # SfM cameras of the capture itself agree within a fraction of this (0.1-1 %)
+MAX_ROT_ERR_DEG = 5.0
+
+
+def check_same_capture(cap, views, gt_dir: Path) -> None:
+    """--gt must be the capture the run's dataset was made from, or every figure compares unrelated pictures:
+    its frames hold the dataset's frame indices, its image has the dataset's aspect ratio, and its cameras match
+    the dataset's up to a similarity (SfM's frame). LiveSceneError naming the mismatch otherwise."""
+    idx = [f.index for f in views.dataset.frames]
+    if max(idx) >= len(cap):
+        raise LiveSceneError(f"--gt {gt_dir} has {len(cap)} frames but the run's dataset has frame index {max(idx)}: "
+                             f"it is not the capture this dataset was made from")
+    intr = views.intrinsics[0]
+    ours, theirs = intr.w / intr.h, cap.intrinsics.w / cap.intrinsics.h
+    if abs(ours / theirs - 1) > 0.02:
+        raise LiveSceneError(f"--gt {gt_dir}: its images are {cap.intrinsics.w}x{cap.intrinsics.h}, the dataset's "
+                             f"{intr.w}x{intr.h} (another aspect ratio): it is not the capture this dataset was made from")
+    if len(idx) < 3:
+        return
+    from interreal.scoring import compare_poses
+
+    est = np.asarray(views.c2w_gl, dtype=np.float64)
+    ref = cap.poses[idx]
+    err = compare_poses(est, ref)
+    if not (err["center_err_pct_median"] <= MAX_CENTRE_ERR_PCT and err["rot_err_deg_median"] <= MAX_ROT_ERR_DEG):
+        raise LiveSceneError(f"--gt {gt_dir}: its cameras do not match the run's dataset (median centre error "
+                             f"{err['center_err_pct_median']:.1f} % of the path, rotation {err['rot_err_deg_median']:.1f} "
+                             f"deg after the best similarity): it is not the capture this dataset was made from")
+
+
 def _footprint(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """Size of a pixel on the surface, up to the focal length: distance / cos(incidence) (N,)."""
     ray = points - centre
@@ -211,14 +242,18 @@ def view_intrinsics(views, i: int, scale: float) -> Intrinsics:
     return intr.scaled(max(1, round(intr.w * scale)), max(1, round(intr.h * scale)))
 
 
-def state_scores(run, truth: Truth, i: int, states: np.ndarray, intr: Intrinsics) -> dict[str, float | None]:
+def state_scores(run, truth: Truth, i: int, states: np.ndarray, intr: Intrinsics, fast: bool = True,
+                 meter: RenderMeter | None = None) -> dict[str, float | None]:
     """The run against the simulator, frame i's camera, both at the given states: `psnr`, and `mask_iou` of the
     probability field against the simulator's instances there (None when the truth has none) - a novel-state view
     can fail by drawing a part badly or by giving its space to another owner (the background), and only this
     tells them apart."""
     ref = truth.render(i, states, intr).astype(np.float32) / 255.0
     views = run.views
-    out = render_view(run, views.c2w_gl[i], intr, np.asarray(states, np.float32), time=float(views.times[i]))
+    out = render_view(run, views.c2w_gl[i], intr, np.asarray(states, np.float32), time=float(views.times[i]),
+                      fast=fast)
+    if meter is not None:
+        meter.add(out)
     inst = truth.state_instance(i, states, intr) if hasattr(truth, "state_instance") else None
     return {"psnr": psnr(np.mean((out["rgb"] - ref) ** 2)),
             "mask_iou": None if inst is None else mask_iou(out["probs"], inst, run.model.n_objects)}
@@ -257,7 +292,13 @@ def composition_states(states: np.ndarray, centres: np.ndarray, train: list[int]
 
 
 def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: float = 1.0, novel: int = 4,
-             seed: int = 0, progress: bool = True) -> dict[str, Any]:
+             seed: int = 0, progress: bool = True, fast: bool = True) -> dict[str, Any]:
+    """The figures (module doc), and `speed`: how fast the run rendered here (`RenderMeter.report`) and the whole
+    evaluation's wall time. fast=False renders with the exact renderer (`render_view`)."""
+    import time
+
+    t_start = time.perf_counter()
+    meter = RenderMeter()
     from tqdm import tqdm
 
     views = run.views
@@ -274,7 +315,7 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
         if (rgb.shape[1], rgb.shape[0]) != (intr.w, intr.h):
             rgb = cv2.resize(rgb, (intr.w, intr.h), interpolation=cv2.INTER_AREA)
             mask = None if mask is None else cv2.resize(mask, (intr.w, intr.h), interpolation=cv2.INTER_NEAREST)
-        out = render_view(run, views.c2w_gl[i], intr, None, time=float(views.times[i]))
+        out = meter.add(render_view(run, views.c2w_gl[i], intr, None, time=float(views.times[i]), fast=fast))
         gt = rgb.astype(np.float32) / 255.0
         rec: dict[str, Any] = {"frame": views.dataset.frames[i].fid, "psnr": psnr(np.mean((out["rgb"] - gt) ** 2)),
                                "ssim": ssim(out["rgb"], gt)}
@@ -316,10 +357,10 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
             intr = view_intrinsics(views, i, scale)
             st, d = novel_states(train_states, rng)
             dists.append(d)
-            sc = state_scores(run, truth, i, st, intr)
+            sc = state_scores(run, truth, i, st, intr, fast, meter)
             # the same camera at the frame's true states, against the same renderer: separates "new state"
             # from "simulator render vs recorded frame"
-            b = state_scores(run, truth, i, truth.states[i], intr)
+            b = state_scores(run, truth, i, truth.states[i], intr, fast, meter)
             rec = {"frame": views.dataset.frames[i].fid, "states": [round(float(v), 3) for v in st],
                    "psnr": sc["psnr"], "true_state_psnr": b["psnr"], "mask_iou": sc["mask_iou"],
                    "true_state_mask_iou": b["mask_iou"]}
@@ -342,10 +383,11 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
             intr = view_intrinsics(views, i, scale)
             st, d = pick
             comp.append({"frame": views.dataset.frames[i].fid, "states": [round(float(v), 3) for v in st],
-                         "distance": round(d, 3), "psnr": state_scores(run, truth, i, st, intr)["psnr"]})
+                         "distance": round(d, 3), "psnr": state_scores(run, truth, i, st, intr, fast, meter)["psnr"]})
         result["composition_frames"] = comp
         result["composition_psnr"] = float(np.mean([c["psnr"] for c in comp])) if comp else None
     result["frames"] = per_frame
+    result["speed"] = {**meter.report(), "eval_s": round(time.perf_counter() - t_start, 3)}
     return result
 
 
@@ -357,6 +399,9 @@ def add_arguments(p) -> None:
     p.add_argument("--scale", type=float, default=1.0, help="render scale (e.g. 0.5 for a quicker estimate)")
     p.add_argument("--novel", type=int, default=4, help="held-out cameras rendered at novel states (needs --gt)")
     p.add_argument("--device", default="auto")
+    p.add_argument("--dataset", type=Path, default=None, help="the run's dataset where it is now, when it was moved")
+    p.add_argument("--exact", action="store_true",
+                   help="render with the exact renderer (every sample read; slower) instead of the fast one")
     p.epilog = ("examples:\n"
                 "  livescene eval out/run --out out/eval.json\n"
                 "  livescene eval out/run --gt out/cap --out out/eval.json --max-frames 8")
@@ -368,11 +413,17 @@ def main(args) -> int:
     from .device import configure_threads
 
     configure_threads(0)
-    run = load_run(args.run, device=args.device)
+    if not (np.isfinite(args.scale) and 0 < args.scale <= 4) or args.max_frames < 0 or args.novel < 0:
+        raise LiveSceneError("--scale must be in (0, 4], --max-frames and --novel at least 0")
+    if args.gt is not None and not args.gt.is_dir():
+        raise LiveSceneError(f"--gt {args.gt} is not a folder: give the `interreal synth` capture folder")
+    run = load_run(args.run, device=args.device, dataset=args.dataset)
     truth = CaptureTruth(args.gt, run.views) if args.gt else None
-    res = evaluate(run, truth, max_frames=args.max_frames, scale=args.scale, novel=args.novel)
-    atomic.write_json(args.out, res)
+    res = evaluate(run, truth, max_frames=args.max_frames, scale=args.scale, novel=args.novel, fast=not args.exact)
+    with writing(args.out):
+        atomic.write_json(args.out, res)
     keys = ["psnr", "ssim", "mask_iou", "depth_l1", "state_mae", "novel_state_psnr", "composition_psnr"]
     print("livescene eval: " + ", ".join(f"{k} {res[k]:.4g}" for k in keys if res.get(k) is not None)
-          + f" -> {args.out}")
+          + f" ({res['speed']['renderer']} renderer, {res['speed']['seconds_per_frame'] or 0:.2f} s a frame, "
+            f"{res['speed']['rays_per_s'] or 0:,} rays/s) -> {args.out}")
     return 0

@@ -145,10 +145,18 @@ class RadianceField(nn.Module):
         self.color_net = mlp(cfg.sh_degree ** 2 + cfg.geo_features, cfg.hidden, 3, layers=2)
 
     def forward(self, xyz: torch.Tensor, k: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        sigma, h = self.density(xyz, k)
+        return sigma, self.color(h, dirs)
+
+    def density(self, xyz: torch.Tensor, k: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(sigma (N,), the sigma net's output (N, 1 + geo_features)): the density alone, so a renderer can leave
+        the colour out where the light never reaches (`livescene.march`)."""
         h = self.sigma_net(self.grid(xyz, k))
-        sigma = trunc_exp(h[:, 0] - 1.0)
-        rgb = torch.sigmoid(self.color_net(torch.cat([spherical_harmonics(dirs, self.bands), h[:, 1:]], -1)))
-        return sigma, rgb
+        return trunc_exp(h[:, 0] - 1.0), h
+
+    def color(self, h: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+        """RGB (N, 3) from `density`'s output and the view directions."""
+        return torch.sigmoid(self.color_net(torch.cat([spherical_harmonics(dirs, self.bands), h[:, 1:]], -1)))
 
 
 class ProposalField(nn.Module):
@@ -178,6 +186,18 @@ class ProbabilityField(nn.Module):
         """xyz (N, 3); values (N, max_objects) -> logits (N, max_objects + 1), background last."""
         feat = torch.sigmoid(self.grid(xyz))
         return self.net(torch.cat([feat, values], -1))
+
+    def folded_bias(self, values: torch.Tensor) -> torch.Tensor:
+        """The first layer's bias with fixed values (max_objects,) folded in: at fixed states the values are the
+        same for every sample, so `forward_folded` skips their share of the first layer."""
+        first = self.net[0]
+        return first.bias + first.weight[:, self.grid.out_dim:] @ values
+
+    def forward_folded(self, xyz: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        """`forward` at the values folded into `bias` (`folded_bias`)."""
+        first = self.net[0]
+        feat = torch.sigmoid(self.grid(xyz))
+        return self.net[1:](F.linear(feat, first.weight[:, : self.grid.out_dim], bias))
 
 
 class FrameVariable(nn.Module):

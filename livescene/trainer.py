@@ -4,15 +4,23 @@ Run folder (docs/interfaces.md "Trained run"): config.yaml, checkpoints/step_<n>
 metrics.jsonl, objects.yaml, reports/train.json. `--resume` restores weights, optimiser, step and every random
 generator, so a killed run continues exactly as if it had not stopped. A NaN/inf loss rolls back to the last
 good checkpoint with a halved learning rate; after `max_divergence_retries` it stops with DivergenceError.
+
+Inputs are checked before the optimiser can be blamed: the dataset must pass `interreal validate` (`load_views`),
+the settings their types and ranges (`check_config`). Reading a run falls back from an unreadable latest.pt to the
+newest intact checkpoints/step_*.pt, with a warning. A resume drops the metrics.jsonl records past the step it
+resumes from (the steps are trained again), and leaves a finished run untouched.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import functools
 import io
 import json
 import math
 import random
+import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -24,13 +32,13 @@ import torch
 
 from interreal import atomic
 from interreal.dataset import Intrinsics
-from interreal.report import StageReport
+from interreal.report import StageReport, read_report
 
 from . import losses as L
-from .config import TrainConfig, apply_overrides, from_dict, load_preset, preset_names, resolve_sizes
+from .config import TrainConfig, apply_overrides, check_config, from_dict, load_preset, preset_names, resolve_sizes
 from .data import RayData, Views, closest_point_depth, load_views
 from .device import JEMALLOC_ENV, configure_threads, describe, reexec_with_jemalloc, select_device
-from .errors import DivergenceError, LiveSceneError
+from .errors import CheckpointError, DivergenceError, LiveSceneError, OutputError, writing
 from .field import LiveSceneModel
 from .sampler import render_rays
 
@@ -51,6 +59,8 @@ class Run:
     config: TrainConfig
     device: torch.device
     step: int = 0
+    checkpoint: Path | None = None  # the file the model was read from (None: a model being trained)
+    occupancy: Any = None  # its `livescene.occupancy.OccupancyGrid` (the checkpoint's, or built on first use)
 
     @property
     def dataset(self):
@@ -110,14 +120,72 @@ def _checkpoint_path(run_dir: Path, which: str | int | None) -> Path:
     else:
         path = Path(which)
     if not path.exists():
-        raise LiveSceneError(f"{path} not found: is {run_dir} a run folder of `livescene train`?")
+        raise CheckpointError(f"{path} not found: is {run_dir} a run folder of `livescene train`?")
     return path
+
+
+CKPT_KEYS = ("step", "model", "config", "meta")  # what rendering needs
+RESUME_KEYS = CKPT_KEYS + ("optimizer", "rng")  # what resuming needs too
+
+
+def read_checkpoint(path: Path, keys: tuple[str, ...] = CKPT_KEYS) -> dict[str, Any]:
+    """One checkpoint file, or CheckpointError saying why it cannot be used (truncated, not a checkpoint, NaN)."""
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure means "not a usable checkpoint"
+        raise CheckpointError(f"{path} is unreadable (truncated or not a checkpoint: {type(exc).__name__})") from exc
+    missing = [k for k in keys if not isinstance(ckpt, dict) or k not in ckpt]
+    if missing:
+        raise CheckpointError(f"{path} is not a livescene checkpoint (no {', '.join(missing)})")
+    if not isinstance(ckpt["meta"], dict) or not isinstance(ckpt["config"], dict) or not isinstance(ckpt["model"], dict):
+        raise CheckpointError(f"{path} is not a livescene checkpoint (malformed meta/config/model)")
+    bad = [k for k, t in ckpt["model"].items()
+           if isinstance(t, torch.Tensor) and t.is_floating_point() and not bool(torch.isfinite(t).all())]
+    if bad:
+        raise CheckpointError(f"{path} holds non-finite weights ({bad[0]})")
+    return ckpt
+
+
+def checkpoint_files(run_dir: Path) -> list[Path]:
+    """latest.pt, then checkpoints/step_*.pt newest first: the order `load_checkpoint` tries them in."""
+    steps = sorted((run_dir / "checkpoints").glob("step_*.pt"), reverse=True)
+    return [p for p in [run_dir / "latest.pt", *steps] if p.is_file()]
+
+
+def load_checkpoint(run_dir: str | Path, which: str | int | None = None,
+                    keys: tuple[str, ...] = CKPT_KEYS) -> tuple[dict[str, Any], Path]:
+    """(checkpoint, path): the one asked for, or with `which` None / "latest" the newest intact one - latest.pt,
+    else (a kill or a full disk truncated it) the newest checkpoints/step_*.pt that loads, with a warning."""
+    run_dir = Path(run_dir)
+    if which not in (None, "latest"):
+        path = _checkpoint_path(run_dir, which)
+        return read_checkpoint(path, keys), path
+    candidates = checkpoint_files(run_dir)
+    if not candidates:
+        raise CheckpointError(f"{run_dir} holds no checkpoint (latest.pt, checkpoints/step_*.pt): is it a run folder "
+                              f"of `livescene train`?")
+    failures: list[str] = []
+    for path in candidates:
+        try:
+            ckpt = read_checkpoint(path, keys)
+        except CheckpointError as exc:
+            failures.append(str(exc))
+            continue
+        if failures:
+            print(f"livescene: warning: {failures[0]}; using {path} (step {ckpt['step']}), the newest intact "
+                  f"checkpoint", file=sys.stderr)
+        return ckpt, path
+    raise CheckpointError(f"no intact checkpoint in {run_dir}: " + "; ".join(failures[:3])
+                          + ("" if len(failures) <= 3 else f" (and {len(failures) - 3} more)"))
 
 
 def checkpoint_config(ckpt: dict) -> TrainConfig:
     """The config a checkpoint was trained with; runs from before the background slice read k = 0 there, runs
     from before rigid parts have none."""
-    cfg = from_dict(ckpt["config"])
+    try:
+        cfg = from_dict(ckpt["config"])
+    except LiveSceneError as exc:
+        raise CheckpointError(f"the checkpoint's settings are unusable: {exc}") from exc
     if "background_k" not in ckpt["config"].get("model", {}):
         cfg.model.background_k = "zero"
     if cfg.model.motion == "auto":  # runs from before rigid parts
@@ -129,19 +197,46 @@ def load_run(run_dir: str | Path, device: str = "auto", checkpoint: str | int | 
              dataset: str | Path | None = None) -> Run:
     """Reopen a run: its model at the latest (or given) checkpoint, its dataset views and config."""
     run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise CheckpointError(f"{run_dir} is not a run folder: train one with `livescene train DS --out {run_dir}`")
     dev = select_device(device)
-    ckpt = torch.load(_checkpoint_path(run_dir, checkpoint), map_location="cpu", weights_only=False)
+    ckpt, path = load_checkpoint(run_dir, checkpoint)
     cfg = checkpoint_config(ckpt)
-    ds_path = Path(dataset) if dataset else Path(ckpt["meta"]["dataset"])
-    if not ds_path.exists():
-        raise LiveSceneError(f"the run's dataset {ds_path} is gone: pass dataset=... (--dataset) to point at it")
-    views = load_views(ds_path, cfg)
+    ds_path = Path(dataset) if dataset else Path(str(ckpt["meta"].get("dataset", "")))
+    if not str(ds_path) or not ds_path.exists():
+        # a run renders with its dataset's cameras, frame times, image size and object names: without it there is
+        # nothing to place a camera or a frame time against, so a moved dataset must be pointed at
+        raise LiveSceneError(f"the run's dataset {ds_path} is gone (moved or deleted): pass --dataset NEW_PATH "
+                             f"(load_run(dataset=...)) to point at it")
+    views = load_views(ds_path, cfg)  # validated: an invalid dataset is refused here
+    check_run_dataset(ckpt["meta"], views, ds_path)
     views.box_lo = np.asarray(ckpt["meta"]["box_lo"], dtype=np.float32)
     views.box_hi = np.asarray(ckpt["meta"]["box_hi"], dtype=np.float32)
     model = LiveSceneModel(cfg.model, views.dataset.n_objects)
-    model.load_state_dict(ckpt["model"])
+    try:
+        model.load_state_dict(ckpt["model"])
+    except RuntimeError as exc:
+        raise CheckpointError(f"{path} does not fit the model its settings describe (another version, or another "
+                              f"dataset's object count): {str(exc).splitlines()[0]}") from exc
     model.to(dev).eval()
-    return Run(run_dir=run_dir, model=model, views=views, config=cfg, device=dev, step=int(ckpt["step"]))
+    from .occupancy import OccupancyGrid  # the grid saved with the checkpoint (runs from before have none)
+
+    grid = OccupancyGrid.from_state(ckpt.get("occupancy"), dev) if ckpt.get("occupancy") else None
+    return Run(run_dir=run_dir, model=model, views=views, config=cfg, device=dev, step=int(ckpt["step"]),
+               checkpoint=path, occupancy=grid if grid is not None and grid.step == int(ckpt["step"]) else None)
+
+
+def check_run_dataset(meta: dict[str, Any], views: Views, ds_path: Path) -> None:
+    """The dataset is the one the run was trained on: same object names and (runs that stored them) frames."""
+    names = meta.get("names")
+    if names is not None and list(names) != list(views.names):
+        raise LiveSceneError(f"{ds_path} names the objects {views.names}, the run was trained on {list(names)}: "
+                             f"it is not the run's dataset")
+    frames = meta.get("frames")
+    fids = [f.fid for f in views.dataset.frames]
+    if frames is not None and list(frames) != fids:
+        raise LiveSceneError(f"{ds_path} has {len(fids)} frames, not the {len(frames)} the run was trained on "
+                             f"(or other ones): it is not the run's dataset")
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -176,17 +271,23 @@ class Trainer:
         self.ckpt_dir = self.run_dir / "checkpoints"
         resume_ckpt = None
         if resume:
-            resume_ckpt = torch.load(_checkpoint_path(self.run_dir, None), map_location="cpu", weights_only=False)
+            if not checkpoint_files(self.run_dir):
+                raise CheckpointError(f"nothing to resume: {self.run_dir} holds no checkpoint (train without --resume)")
+            resume_ckpt, _ = load_checkpoint(self.run_dir, None, RESUME_KEYS)
             steps = cfg.steps
             cfg = checkpoint_config(resume_ckpt)
             cfg.steps = max(steps, cfg.steps) if steps else cfg.steps
             dataset = resume_ckpt["meta"]["dataset"]
-        elif (self.run_dir / "latest.pt").exists():
+            if not Path(dataset).exists():
+                raise LiveSceneError(f"the run's dataset {dataset} is gone (moved or deleted): put it back to resume")
+        elif checkpoint_files(self.run_dir):
             raise LiveSceneError(f"{self.run_dir} already holds a run: add --resume to continue it or choose another --out")
+        check_config(cfg)  # settings named before any data is read (not "training diverged" later)
         self.dataset_path = Path(dataset).resolve()
         torch.manual_seed(cfg.seed)
         views = load_views(self.dataset_path, cfg)
         if resume_ckpt is not None:
+            check_run_dataset(resume_ckpt["meta"], views, self.dataset_path)
             views.box_lo = np.asarray(resume_ckpt["meta"]["box_lo"], dtype=np.float32)
             views.box_hi = np.asarray(resume_ckpt["meta"]["box_hi"], dtype=np.float32)
             self.cfg = cfg
@@ -220,6 +321,7 @@ class Trainer:
         if resume_ckpt is not None:
             self._restore(resume_ckpt)
             self.overhead = float(resume_ckpt["meta"].get("overhead_s", 0.0))
+            self._eval_s_per_px = float(resume_ckpt["meta"].get("eval_s_per_px", 0.0))
 
     # -- checkpoints ---------------------------------------------------------------------------------------------
     def _state(self) -> dict[str, Any]:
@@ -234,7 +336,10 @@ class Trainer:
                      "box_lo": self.views.box_lo.tolist(), "box_hi": self.views.box_hi.tolist(),
                      "box_source": self.views.box_source, "lr_scale": self.lr_scale, "retries": self.retries,
                      "elapsed_s": self.elapsed, "overhead_s": self.overhead, "eval_cursor": self.eval_cursor,
+                     "eval_s_per_px": self._eval_s_per_px, "frames": [f.fid for f in self.views.dataset.frames],
                      "params": self.model.param_count()},
+            # the occupancy grid of the finished model (`livescene.occupancy`): fast renders of this checkpoint
+            **({"occupancy": self.occupancy.state()} if getattr(self, "occupancy", None) is not None else {}),
         }
 
     def _restore(self, ckpt: dict[str, Any]) -> None:
@@ -259,8 +364,15 @@ class Trainer:
         torch.save(self._state(), buf)
         data = buf.getvalue()
         path = self.ckpt_dir / f"step_{self.step:07d}.pt"
-        atomic.write_bytes(path, data)
-        atomic.write_bytes(self.run_dir / "latest.pt", data)
+        try:
+            with writing(path):
+                atomic.write_bytes(path, data)
+            with writing(self.run_dir / "latest.pt"):
+                atomic.write_bytes(self.run_dir / "latest.pt", data)
+        except OutputError as exc:
+            intact = [p.name for p in checkpoint_files(self.run_dir)]
+            raise OutputError(f"{exc}; " + (f"resume later with --resume (from {intact[0]})" if intact else
+                                            "no checkpoint was written")) from exc
         old = sorted(self.ckpt_dir.glob("step_*.pt"))[: -max(self.cfg.keep_checkpoints, 1)]
         for p in old:
             p.unlink(missing_ok=True)
@@ -272,7 +384,7 @@ class Trainer:
         if self.retries > self.cfg.max_divergence_retries:
             raise DivergenceError(f"training diverged at step {self.step} ({reason}) {self.retries - 1} times after "
                                   f"rolling back; lower --set lr=... (now {self.cfg.lr * self.lr_scale:g}) or check the data")
-        ckpt = torch.load(self.run_dir / "latest.pt", map_location="cpu", weights_only=False)
+        ckpt, _ = load_checkpoint(self.run_dir, None, RESUME_KEYS)
         retries, scale = self.retries, self.lr_scale * 0.5
         self._restore(ckpt)
         self.retries, self.lr_scale = retries, scale
@@ -280,9 +392,33 @@ class Trainer:
         print(f"livescene train: {reason} -> rolled back to step {self.step} with lr x{self.lr_scale:g}", file=sys.stderr)
 
     def _log(self, record: dict[str, Any]) -> None:
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        with open(self.run_dir / "metrics.jsonl", "a", encoding="utf-8") as fh:
-            fh.write(json.dumps(record) + "\n")
+        path = self.run_dir / "metrics.jsonl"
+        with writing(path):
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            with open(path, "a", encoding="utf-8") as fh:
+                fh.write(json.dumps(record) + "\n")
+
+    def _truncate_metrics(self) -> dict[str, Any]:
+        """Drop the metrics.jsonl records a resume will write again (past the step it resumes from; the final
+        evaluation and rollbacks at that step; half-written lines); returns the last train record kept."""
+        path = self.run_dir / "metrics.jsonl"
+        if not path.exists():
+            return {}
+        kept, last = [], {}
+        for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+            try:
+                rec = json.loads(line)
+                step = int(rec["step"])
+            except (ValueError, TypeError, KeyError):
+                continue
+            if step > self.step or (step == self.step and (rec.get("final") or rec.get("type") == "rollback")):
+                continue
+            kept.append(line)
+            if rec.get("type") == "train":
+                last = rec
+        with writing(path):
+            atomic.write_text(path, "".join(x + "\n" for x in kept))
+        return last
 
     # -- one step ------------------------------------------------------------------------------------------------
     def losses(self, batch: dict[str, torch.Tensor]):
@@ -377,7 +513,8 @@ class Trainer:
         """PSNR of frame i rendered with its long side at most `max_side` (the ground truth area-resized to match)."""
         from .render import render_view
 
-        run = Run(self.run_dir, self.model, self.views, self.cfg, self.device, self.step)
+        run = Run(self.run_dir, self.model, self.views, self.cfg, self.device, self.step,
+                  occupancy=getattr(self, "occupancy", None))
         small = within_side(self.views.intrinsics[i], max_side)
         self.model.eval()
         out = render_view(run, self.views.c2w_gl[i], small, None, time=float(self.views.times[i]))
@@ -424,18 +561,20 @@ class Trainer:
         side = self.final_side()
         scores = [self.heldout_psnr(i, side) for i in frames]
         return {"psnr": float(np.mean(scores)), "frames": [int(i) for i in frames], "max_side": side,
-                "frame_psnr": [round(float(v), 3) for v in scores]}
+                "frame_psnr": [round(float(v), 3) for v in scores], "held_out": bool(self.views.held_out)}
 
     # -- loop ----------------------------------------------------------------------------------------------------
     def fit(self) -> dict[str, Any]:
         from tqdm import tqdm
 
         cfg = self.cfg
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        atomic.write_yaml(self.run_dir / "config.yaml", {"dataset": str(self.dataset_path), **cfg.to_dict()})
         ds = self.views.dataset
-        atomic.write_yaml(self.run_dir / "objects.yaml", {"objects": [
-            {"id": i, "name": n, "description": ds.prompts.get(n, "")} for i, n in enumerate(ds.object_names)]})
+        with writing(self.run_dir / "config.yaml"):
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            atomic.write_yaml(self.run_dir / "config.yaml", {"dataset": str(self.dataset_path), **cfg.to_dict()})
+            atomic.write_yaml(self.run_dir / "objects.yaml", {"objects": [
+                {"id": i, "name": n, "description": ds.prompts.get(n, "")} for i, n in enumerate(ds.object_names)]})
+        last = self._truncate_metrics()  # a resume trains the steps past its checkpoint again: no duplicates
         params = self.model.param_count()
         m = cfg.model
         print(f"livescene train: {len(self.views.train)} train / {len(self.views.held_out)} held-out frames at "
@@ -457,7 +596,6 @@ class Trainer:
             self._t_init = None
         t_start = time.perf_counter() - self.elapsed
         overhead_start = self.overhead  # evaluations and checkpoints in the loop add to it; elapsed leaves them out
-        last = {}
         acc: dict[str, list[float]] = {}
         bar = tqdm(total=cfg.steps, initial=self.step, desc="train", disable=not self.show_progress,
                    dynamic_ncols=True, unit="step")
@@ -483,7 +621,8 @@ class Trainer:
                 t0 = time.perf_counter()
                 ev = self.quick_eval()
                 self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2), **ev})
-                bar.write(f"step {self.step}: held-out PSNR {ev['psnr']:.2f} dB (frame position {ev['frame']})")
+                which = "held-out" if self.views.held_out else "training-frame (none held out)"
+                bar.write(f"step {self.step}: {which} PSNR {ev['psnr']:.2f} dB (frame position {ev['frame']})")
                 self.overhead += time.perf_counter() - t0
             if cfg.ckpt_every and self.step % cfg.ckpt_every == 0:
                 t0 = time.perf_counter()
@@ -493,13 +632,22 @@ class Trainer:
                 stop_reason = "max-minutes"
                 break
         bar.close()
+        t0 = time.perf_counter()
+        from .occupancy import build_grid  # once, for the final model: saved with its checkpoint, renders skip air
+
+        self.occupancy = build_grid(self.model, self.box, self.step)
+        self.overhead += time.perf_counter() - t0
         self.save_checkpoint()
         final = self.final_eval()
         self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2), "final": True, **final})
+        held = final["held_out"]
         return {"steps": self.step, "elapsed_s": round(self.elapsed, 2), "params": params, "stop": stop_reason,
-                "train_psnr": last.get("psnr"), "heldout_psnr": final["psnr"],
-                "heldout_eval_frames": len(final["frames"]), "heldout_eval_side": final["max_side"],
-                "rollbacks": self.retries}
+                "train_psnr": last.get("psnr"), "heldout_psnr": final["psnr"] if held else None,
+                "heldout_eval_frames": len(final["frames"]) if held else 0, "heldout_eval_side": final["max_side"],
+                # with no frame held out (a few frames, or holdout_every <= 1) the end-of-run PSNR is on
+                # training frames: named as such, never as "held-out"
+                "eval_psnr": final["psnr"], "eval_frames": len(final["frames"]),
+                "eval_on": "held-out" if held else "training", "rollbacks": self.retries}
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -533,23 +681,91 @@ def add_arguments(p) -> None:
 
 def train(dataset: str | Path, out: str | Path, cfg: TrainConfig, device: str = "auto", resume: bool = False,
           max_minutes: float = 0.0, show_progress: bool = True) -> dict[str, Any]:
-    """Train (or resume) a run; returns a summary. Writes RUN/reports/train.json."""
-    trainer = Trainer(dataset, out, cfg, device=device, resume=resume, max_minutes=max_minutes,
-                      show_progress=show_progress)
-    with StageReport(out, "train", inputs={"dataset": str(trainer.dataset_path)},
-                     settings=trainer.cfg.to_dict()) as rep:
+    """Train (or resume) a run; returns a summary. Writes RUN/reports/train.json.
+
+    A resumed run that already finished (its steps done, its report "ok") is left untouched: the summary is its
+    report's, with "finished": True. A run folder this call created is removed again when the call fails before
+    it holds a checkpoint (refused input, disk full, permissions): no half run is left behind."""
+    out = Path(out)
+    created = not out.exists()
+    try:
+        with run_lock(out):
+            remove_stale_temporaries(out)
+            trainer = Trainer(dataset, out, cfg, device=device, resume=resume, max_minutes=max_minutes,
+                              show_progress=show_progress)
+            done = finished_summary(trainer) if resume else None
+            if done is not None:
+                return done
+            return _train(trainer, out)
+    except Exception:
+        if created and out.is_dir() and not checkpoint_files(out):
+            shutil.rmtree(out, ignore_errors=True)  # refused, or nothing resumable written: leave no half run behind
+        raise
+
+
+def _train(trainer: "Trainer", out: Path) -> dict[str, Any]:
+    with writing(out / "reports" / "train.json"):
+        rep = StageReport(out, "train", inputs={"dataset": str(trainer.dataset_path)}, settings=trainer.cfg.to_dict())
+        rep.__enter__()
+    try:
         for message, cause in label_warnings(trainer.views):
             rep.warn(message, cause=cause)
         summary = trainer.fit()
         rep.figures.update(summary)
         for message, cause in state_warnings(*learned_states(trainer)):
             rep.warn(message, cause=cause)
-        if summary.get("heldout_psnr") is not None and summary["heldout_psnr"] < LOW_FIT_PSNR:
-            rep.warn(f"held-out PSNR {summary['heldout_psnr']:.1f} dB after {summary['steps']} steps: the model "
+        psnr, where = summary.get("eval_psnr"), ("held-out" if summary.get("eval_on") == "held-out"
+                                                  else "training-frame (no frame is held out)")
+        if psnr is not None and psnr < LOW_FIT_PSNR:
+            rep.warn(f"{where} PSNR {psnr:.1f} dB after {summary['steps']} steps: the model "
                      f"does not fit the views yet (train longer, or check poses and masks)", cause="low-fit")
+    except BaseException as exc:
+        with contextlib.suppress(OSError):  # a full disk must not hide the error that stopped the run
+            rep.__exit__(type(exc), exc, exc.__traceback__)
+        raise
+    with writing(out / "reports" / "train.json"):
+        rep.__exit__(None, None, None)
     for w in rep.data["warnings"]:
         print(f"livescene train: warning: {w['message']}", file=sys.stderr)
     return summary
+
+
+def finished_summary(trainer: "Trainer") -> dict[str, Any] | None:
+    """The report's figures, with "finished": True, when the resumed run already trained all its steps and
+    reported them ("ok" at this step); None when there is training (or the final evaluation) left to do."""
+    if trainer.step < trainer.cfg.steps:
+        return None
+    rep = read_report(trainer.run_dir, "train")
+    if not rep or rep.get("status") != "ok" or (rep.get("figures") or {}).get("steps") != trainer.step:
+        return None
+    return {**rep["figures"], "finished": True}
+
+
+@contextlib.contextmanager
+def run_lock(run_dir: Path):
+    """One process per run folder (a second `--resume` while one trains would interleave checkpoints); the lock
+    goes away with the process, even on kill -9."""
+    with writing(run_dir):
+        run_dir.mkdir(parents=True, exist_ok=True)
+        fh = open(run_dir / ".lock", "a+")
+    with fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise LiveSceneError(f"{run_dir} is being trained by another process: wait for it, or stop it first") from None
+        yield
+
+
+def remove_stale_temporaries(run_dir: Path) -> list[Path]:
+    """Delete the temporary files (`.NAME.XXXX.tmp`) an atomic write leaves when it is killed; under `run_lock`
+    no other writer can own them."""
+    gone = []
+    for folder in (run_dir, run_dir / "checkpoints", run_dir / "reports"):
+        for p in folder.glob(".*.tmp") if folder.is_dir() else []:
+            with contextlib.suppress(OSError):
+                p.unlink()
+                gone.append(p)
+    return gone
 
 
 # below these, the learned per-frame states or the renders are not to be trusted (bench_train label and time sweeps:
@@ -613,8 +829,33 @@ def main(args) -> int:
         cfg.seed = args.seed
     if args.resume and not args.steps:
         cfg.steps = 0
+    if args.steps < 0:
+        raise LiveSceneError(f"--steps {args.steps}: give a positive number of steps")
+    if not args.resume:
+        check_config(cfg)  # before any data is read
+    elif args.overrides:
+        print("livescene train: warning: --set is ignored with --resume (the run continues with its own settings)",
+              file=sys.stderr)
+    if args.max_minutes < 0 or not math.isfinite(args.max_minutes):
+        raise LiveSceneError(f"--max-minutes {args.max_minutes}: give a positive number of minutes (0 = no limit)")
     summary = train(args.dataset, args.out, cfg, device=str(device), resume=args.resume,
                     max_minutes=args.max_minutes, show_progress=not args.no_progress)
+    if summary.get("finished"):
+        print(f"livescene train: {args.out} already finished ({summary['steps']} steps): nothing to do, its outputs "
+              f"are unchanged (pass --steps N above {summary['steps']} with --resume to train further)")
+        return 0
     print(f"livescene train: {summary['steps']} steps in {summary['elapsed_s'] / 60:.1f} min "
-          f"({summary['stop']}); held-out PSNR ({summary['heldout_eval_frames']} frames) {summary['heldout_psnr']:.2f} dB -> {args.out}")
+          f"({summary['stop']}); {psnr_line(summary)} -> {args.out}")
     return 0
+
+
+def psnr_line(summary: dict[str, Any]) -> str:
+    """'held-out PSNR (3 frames) 27.10 dB', or with nothing held out what the figure really is."""
+    n = int(summary.get("eval_frames", summary.get("heldout_eval_frames", 0)))
+    frames = f"{n} frame{'s' if n != 1 else ''}"
+    psnr = summary.get("eval_psnr", summary.get("heldout_psnr"))
+    if psnr is None:
+        return "no PSNR"
+    if summary.get("eval_on", "held-out") == "held-out":
+        return f"held-out PSNR ({frames}) {psnr:.2f} dB"
+    return f"no frame is held out (too few frames, or holdout_every <= 1): PSNR on {frames} it trained on {psnr:.2f} dB"

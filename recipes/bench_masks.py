@@ -1,12 +1,20 @@
-"""Mask propagation benchmark: IoU against truth and speed, ours vs a plain Farneback baseline.
+"""Mask propagation benchmark: J against truth, the time of the whole `interreal masks` command, and whether
+the stage's warning predicts the sequences that fail.
 
-Data: DAVIS 2016 `blackswan` and `car-shadow` (../shared/data/davis2016, first frame only and a keyframe every
-10 frames) and the default simulated capture (`interreal synth`, keyframes every 60 frames + first + last).
-Each record: data, variant, keyframe_every (0 = first frame only), iou_mean (Jaccard, mean over the frames
-that were not given, per object, then over objects), iou_worst_object, fps (frames/s of the propagation
-itself, image decoding included, writing excluded; 2 threads; wall clock, so slowed by other load), cpu_fps
-(frames per CPU-second over all threads = one dedicated core; load-independent), frames, objects,
-worst_frames (per object, its five worst (frame, IoU) pairs: where propagation fails).
+Data: every sequence in ../shared/data/davis2016 (images/*.jpg, masks/*.png), and the default simulated capture
+(`interreal synth`, its keyframes: every 60 frames + first + last). Every run is the real command
+(`python -m interreal masks DS --keyframes K --quiet`, previews included) in a subprocess, timed from start-up
+to exit. Settings:
+- protocol `first`: the first frame's mask only; protocol `every10`: a truth keyframe every 10 frames;
+- the annotation-effort curve: 1, 2, 5, 10, 20 keyframes per 100 frames; after the first frame, keyframes go
+  where the stage's own `suggested_frames` (from the run one level below) say;
+- the simulated capture (keyframe every 60).
+Per run: j_mean (Jaccard, mean over the frames that were not given, per object, then over objects), j_worst_object,
+s_per_frame and fps of the whole command, warned (a `masks-unreliable` warning in DS/reports/masks.json),
+lost_warned (an `object-lost` warning), predicted_j (the stage's own estimate).
+Warning quality over the DAVIS runs of both protocols: precision / recall of "warned" for "J < 0.7", with the
+shipped weights (in-sample) and leave-one-sequence-out (the health model refit without the held-out sequence).
+`--fit` prints weights refit on all sequences (to paste into interreal/masks/health.py).
 
     python recipes/bench_masks.py --quick --out bench/
     python recipes/bench_masks.py --out bench/
@@ -14,7 +22,9 @@ worst_frames (per object, its five worst (frame, IoU) pairs: where propagation f
 
 from __future__ import annotations
 
+import json
 import shutil
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -22,32 +32,30 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from benchlib import bench_args, print_table, scatter_chart, write_results
+from benchlib import REPO, bench_args, print_table, scatter_chart, write_results
 
 from interreal import atomic
 from interreal.conventions import fid_of_index, frame_name
-from interreal.masks import propagate
-from interreal.masks.appearance import AppearanceConfig
-from interreal.masks.flow import FlowConfig
-from interreal.masks.track import TrackConfig
+from interreal.masks import health as H
 from interreal.paths import require_shared
 
-DAVIS = ("blackswan", "car-shadow")
 THREADS = 2
+BAD_J = 0.7                      # a sequence under this mean J is one the warning must catch
+EFFORT = (1, 2, 5, 10, 20)       # keyframes per 100 frames
+VARIANTS = {                     # extra command-line settings (speed / accuracy trade-offs)
+    "ours": [],
+    "ours-fast": ["--preset", "ultrafast", "--work-size", "320"],
+    "ours-full": ["--preset", "medium", "--work-size", "0"],
+    "baseline": ["--flow", "farneback", "--appearance", "0", "--rigid", "0", "--no-fusion", "--no-refine",
+                 "--work-size", "0"],
+}
 
 
-def variants(quick: bool) -> dict[str, TrackConfig | None]:
-    """None = the stage's defaults ('ours')."""
-    out: dict[str, TrackConfig | None] = {
-        "ours": None,
-        "baseline": TrackConfig(flow=FlowConfig(method="farneback", boundary_tol=0.0),
-                                appearance=AppearanceConfig(weight=0.0), work_long_side=0, fill_radius=0,
-                                refine_radius=0, out_radius=0, sharpen=1.0, fusion=False, rigid=0.0),
-    }
-    if not quick:
-        out["ours-fast"] = TrackConfig(flow=FlowConfig(preset="ultrafast"), work_long_side=320)
-        out["ours-full"] = TrackConfig(flow=FlowConfig(preset="medium"), work_long_side=0)
-    return out
+def davis_sequences(quick: bool) -> list[str]:
+    """Every sequence folder present (with images/ and masks/); --quick: the first two."""
+    root = require_shared("davis2016")
+    seqs = sorted(p.name for p in root.iterdir() if (p / "images").is_dir() and (p / "masks").is_dir())
+    return seqs[:2] if quick else seqs
 
 
 def davis_dataset(seq: str, root: Path, limit: int | None) -> tuple[Path, list[np.ndarray], list[str]]:
@@ -95,86 +103,237 @@ def write_keyframes(folder: Path, gts: list[np.ndarray], keys: list[int], names:
     atomic.write_yaml(folder / "mapping.yaml", dict(enumerate(names)))
 
 
-def score(ds: Path, gts: list[np.ndarray], keys: list[int], n_obj: int) -> tuple[list[float], list[list[tuple]]]:
-    """Per object: mean Jaccard over the frames that were not given (both empty counts as 1), and its five worst
-    (frame, IoU) pairs: where propagation fails."""
-    per: list[list[tuple[int, float]]] = [[] for _ in range(n_obj)]
+def frame_j(ds: Path, gts: list[np.ndarray], n_obj: int) -> np.ndarray:
+    """(frames, objects) Jaccard of the written masks (both empty counts as 1; 255 in the truth is ignored)."""
+    out = np.ones((len(gts), n_obj))
     for i, gt in enumerate(gts):
-        if i in keys:
-            continue
         pred = np.load(ds / "masks" / f"{fid_of_index(i)}.npy")
         valid = gt != 255
         for k in range(n_obj):
-            p, g = pred[..., k] & valid, (gt == k + 1)
+            p, g = pred[..., k] & valid, gt == k + 1
             u = (p | g).sum()
-            per[k].append((i, float((p & g).sum() / u) if u else 1.0))
-    means = [float(np.mean([v for _, v in x])) if x else float("nan") for x in per]
-    worst = [[(i, round(v, 3)) for i, v in sorted(x, key=lambda iv: iv[1])[:5]] for x in per]
-    return means, worst
+            out[i, k] = (p & g).sum() / u if u else 1.0
+    return out
 
 
-def run_one(data: str, ds: Path, gts, names, keys: list[int], every: int, variant: str, cfg, work: Path) -> dict:
-    kdir = work / f"keys-{data}-{every}"
-    write_keyframes(kdir, gts, keys, names)
+def run_command(ds: Path, kdir: Path, extra: list[str], suggest: int) -> float:
+    """The whole `interreal masks` command in a fresh process; returns its wall time (start-up to exit)."""
     shutil.rmtree(ds / "masks", ignore_errors=True)
+    shutil.rmtree(ds / "reports", ignore_errors=True)
     (ds / "mapping.yaml").unlink(missing_ok=True)
+    cmd = [sys.executable, "-m", "interreal", "masks", str(ds), "--keyframes", str(kdir), "--quiet",
+           "--suggest", str(suggest), *extra]
     t0 = time.perf_counter()
-    fig = propagate(ds, kdir, config=cfg, preview="none", suggest=3, progress=False)
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     wall = time.perf_counter() - t0
-    ious, worst = score(ds, gts, keys, len(names))
-    conf = fig["confidence_mean"]
-    return {"data": data, "variant": variant, "keyframe_every": every, "iou_mean": round(float(np.mean(ious)), 4),
-            "iou_worst_object": round(min(ious), 4), "fps": fig["fps"], "cpu_fps": fig["cpu_fps"], "wall_s": round(wall, 2),
-            "frames": len(gts), "objects": len(names), "width": int(gts[0].shape[1]), "height": int(gts[0].shape[0]),
-            "confidence_mean": round(float(np.mean(list(conf.values()))), 4),
-            "suggested": " ".join(fig["suggested_frames"]),
-            "per_object": "; ".join(f"{n}={v:.3f}" for n, v in zip(names, ious)),
-            "worst_frames": {n: w for n, w in zip(names, worst)}}
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stdout}\n{proc.stderr}")
+    return wall
+
+
+def run_one(data: str, ds: Path, gts, names, keys: list[int], setting: str, variant: str, work: Path,
+            suggest: int = 5) -> dict:
+    kdir = work / f"keys-{data}"
+    write_keyframes(kdir, gts, keys, names)
+    wall = run_command(ds, kdir, VARIANTS[variant], suggest)
+    rep = json.loads((ds / "reports" / "masks.json").read_text())
+    fig = rep["figures"]
+    j = frame_j(ds, gts, len(names))
+    free = np.ones(len(gts), bool)
+    free[keys] = False
+    per_obj = j[free].mean(0) if free.any() else np.ones(len(names))
+    causes = {w.get("cause") for w in rep.get("warnings", [])}
+    worst = {n: [(int(i), round(float(j[i, k]), 3)) for i in np.argsort(j[:, k]) if free[i]][:5]
+             for k, n in enumerate(names)}
+    return {"data": data, "setting": setting, "variant": variant, "keyframes": len(keys),
+            "keyframes_per_100": round(100 * len(keys) / len(gts), 2), "frames": len(gts), "objects": len(names),
+            "j_mean": round(float(per_obj.mean()), 4), "j_worst_object": round(float(per_obj.min()), 4),
+            "wall_s": round(wall, 2), "s_per_frame": round(wall / len(gts), 4), "fps": round(len(gts) / wall, 2),
+            "stage_fps": fig["fps"], "width": int(gts[0].shape[1]), "height": int(gts[0].shape[0]),
+            "warned": "masks-unreliable" in causes, "lost_warned": "object-lost" in causes,
+            "predicted_j": round(float(min(fig["confidence_mean"].values())), 4),  # worst object, as warned
+            "lost": {n: fig["health"][n]["lost"] for n in names},
+            "suggested": fig["suggested_frames"],
+            "per_object": "; ".join(f"{n}={v:.3f}" for n, v in zip(names, per_obj)),
+            "worst_frames": worst,
+            # per frame, for the leave-one-sequence-out check of the warning
+            "_frames": {"j": j.round(4).tolist(), "key": (~free).tolist(),
+                        "cues": {n: fig["cues"][n] for n in names}}}
+
+
+def effort_curve(seq: str, ds: Path, gts, names, work: Path, first: dict, every10: dict | None) -> list[dict]:
+    """Mean J against keyframes per 100 frames; keyframes after the first go where the stage suggests."""
+    n = len(gts)
+    out, keys, last = [], [0], first
+    for level in EFFORT:
+        target = max(1, min(n, round(level * n / 100)))
+        if target > len(keys):
+            for fid in last["suggested"]:
+                if len(keys) < target and int(fid) not in keys:
+                    keys.append(int(fid))
+            while len(keys) < target:  # fewer suggestions than needed: split the widest gap
+                ks = sorted(keys)
+                a, b = max(zip(ks, ks[1:] + [n]), key=lambda g: g[1] - g[0])
+                keys.append((a + b) // 2)
+            keys = sorted(set(keys))
+            last = run_one(seq, ds, gts, names, keys, f"effort{level}", "ours", work,
+                           suggest=max(1, round(EFFORT[-1] * n / 100) - len(keys)))
+        out.append({**last, "setting": f"effort{level}", "effort_level": level})
+    return out
+
+
+def loo_warning(runs: list[dict]) -> dict:
+    """Precision / recall of the warning for 'mean J < BAD_J' over the DAVIS protocol runs: as the stage shipped
+    it, and with the health model refit leave-one-sequence-out (on the protocol runs of the other sequences,
+    the same set the shipped weights were fit on)."""
+    davis = [r for r in runs if r["data"] != "synth" and r["setting"] in ("first", "every10") and r["variant"] == "ours"]
+    train = davis
+
+    def inputs(r):
+        """Per object: (features (n, F), area, ref area, expected, keyframe, J per frame)."""
+        key = np.array(r["_frames"]["key"])
+        j = np.array(r["_frames"]["j"])
+        for k, c in enumerate(r["_frames"]["cues"].values()):
+            f = np.stack([np.array(c[name], float) for name in H.FEATURES], -1)
+            yield f, np.array(c["area_share"]), np.array(c["ref_share"]), np.array(c["expected"], bool), key, j[:, k]
+
+    def means(rs):
+        xs, ys = [], []
+        for r in rs:
+            for f, *_, key, j in inputs(r):
+                xs.append(f[~key].mean(0))
+                ys.append(j[~key].mean())
+        return np.array(xs), np.array(ys)
+
+    def predicted(r, w):
+        return min(float(H.assess(f[:, None], a[:, None], ref[:, None], e[:, None], key, w).mean_predicted(key)[0])
+                   for f, a, ref, e, key, _ in inputs(r))
+
+    def pr(pred: list[bool], truth: list[bool]) -> dict:
+        tp = sum(p and t for p, t in zip(pred, truth))
+        return {"precision": round(tp / sum(pred), 3) if sum(pred) else None,
+                "recall": round(tp / sum(truth), 3) if sum(truth) else None,
+                "warned": sum(pred), "bad": sum(truth), "runs": len(truth)}
+
+    truth = [r["j_worst_object"] < BAD_J for r in davis]
+    out = {"shipped": pr([r["warned"] for r in davis], truth),
+           "shipped_any_warning": pr([r["warned"] or r["lost_warned"] for r in davis], truth)}
+    loo_pred, detail = [], []
+    for r in davis:
+        w = H.fit(*means([x for x in train if x["data"] != r["data"]]))
+        p = predicted(r, w)
+        loo_pred.append(p < H.WARN_J)
+        detail.append({"data": r["data"], "setting": r["setting"], "j": r["j_mean"], "predicted_loo": round(p, 3),
+                       "predicted_shipped": r["predicted_j"]})
+    out["leave_one_out"] = pr(loo_pred, truth)
+    out["leave_one_out_runs"] = detail
+    out["weights_all"] = [round(float(v), 3) for v in H.fit(*means(train))]
+    return out
 
 
 def main() -> int:
     def extra(p):
         p.add_argument("--no-synth", action="store_true", help="DAVIS only")
-        p.add_argument("--variants", default="", help="comma-separated subset of variants to run (default: all), "
-                       "e.g. 'ours' to skip the slow baseline rows while iterating")
+        p.add_argument("--no-effort", action="store_true", help="skip the annotation-effort curve")
+        p.add_argument("--variants", default="ours", help=f"comma-separated settings of the command to compare "
+                       f"on the two protocols (default ours; all: {','.join(VARIANTS)})")
+        p.add_argument("--only", default="", help="comma-separated DAVIS sequences (default: every one present)")
+        p.add_argument("--fit", action="store_true", help="print the health model's weights refit on every run")
     args = bench_args("masks", __doc__.splitlines()[0], extra)
     cv2.setNumThreads(THREADS)
     work = args.out / "_masks_work"
     limit = 20 if args.quick else None
+    vs = list(VARIANTS) if args.variants == "all" else args.variants.split(",")
+    unknown = set(vs) - set(VARIANTS)
+    if unknown:
+        raise SystemExit(f"unknown variant(s) {sorted(unknown)}; choose from {sorted(VARIANTS)}")
+    seqs = args.only.split(",") if args.only else davis_sequences(args.quick)
     runs: list[dict] = []
-    vs = variants(args.quick)
-    if args.variants:
-        unknown = set(args.variants.split(",")) - set(vs)
-        if unknown:
-            raise SystemExit(f"unknown variant(s) {sorted(unknown)}; choose from {sorted(vs)}")
-        vs = {k: v for k, v in vs.items() if k in args.variants.split(",")}
-    for seq in DAVIS:
+    curves: dict[str, list[dict]] = {}
+    for seq in seqs:
         ds, gts, names = davis_dataset(seq, work, limit)
-        for every in (0, 10):
-            keys = [0] if every == 0 else list(range(0, len(gts), every))
-            for vname, cfg in vs.items():
-                runs.append(run_one(seq, ds, gts, names, keys, every, vname, cfg, work))
-                print(f"  {seq} every={every} {vname}: iou {runs[-1]['iou_mean']:.3f} fps {runs[-1]['fps']:.1f}",
+        for vname in vs:
+            first = run_one(seq, ds, gts, names, [0], "first", vname, work,
+                            suggest=max(1, round(EFFORT[-1] * len(gts) / 100) - 1))
+            every = run_one(seq, ds, gts, names, list(range(0, len(gts), 10)), "every10", vname, work)
+            runs += [first, every]
+            print(f"  {seq} {vname}: J first {first['j_mean']:.3f} (warned {first['warned']}, predicted "
+                  f"{first['predicted_j']:.2f}), every10 {every['j_mean']:.3f} (warned {every['warned']}, predicted "
+                  f"{every['predicted_j']:.2f}), {first['fps']:.1f} / {every['fps']:.1f} frames/s", file=sys.stderr)
+            if vname == "ours" and not args.no_effort:
+                curve = curves[seq] = effort_curve(seq, ds, gts, names, work, first, every)
+                runs += [r for r in curve if r["keyframes"] > 1]  # one keyframe: the `first` run itself
+                print(f"  {seq} effort: " + ", ".join(f"{r['effort_level']}/100 -> {r['j_mean']:.3f}" for r in curve),
                       file=sys.stderr)
     if not args.no_synth:
         ds, gts, names, keys = synth_dataset(work, args.quick)
-        for vname, cfg in vs.items():
-            if vname == "ours-full":
-                continue  # full-size medium flow on 300 frames of 640x480: too slow for this machine's budget
-            runs.append(run_one("synth", ds, gts, names, keys, 60, vname, cfg, work))
-            print(f"  synth {vname}: iou {runs[-1]['iou_mean']:.3f} ({runs[-1]['per_object']})", file=sys.stderr)
-    targets = {"davis first frame only iou_mean": 0.80, "davis keyframe every 10 iou_mean": 0.92,
-               "davis fps at 854x480": 20, "synth keyframes every 60, each moving part": 0.93}
-    write_results(args.out, "masks", runs, quick=args.quick, threads=THREADS, targets=targets,
-                  note="fps measured on a shared 2-core machine: pessimistic")
-    scatter_chart(args.out / "masks.png", runs, "fps", "iou_mean",
-                  label=lambda r: f"{r['data']} k={r['keyframe_every']}",
-                  lines_by=lambda r: r["variant"], logx=True, xlabel="frames / s (log)", ylabel="IoU (mean)",
-                  title="mask propagation: speed vs accuracy")
-    print_table(runs, ["data", "variant", "keyframe_every", "iou_mean", "iou_worst_object", "fps", "cpu_fps", "frames",
-                       "per_object"],
-                title="masks")
+        runs.append(run_one("synth", ds, gts, names, keys, "synth60", "ours", work))
+        print(f"  synth: J {runs[-1]['j_mean']:.3f} ({runs[-1]['per_object']})", file=sys.stderr)
+    summary = summarise(runs, seqs, curves)
+    warning = loo_warning(runs) if len({r["data"] for r in runs if r["data"] != "synth"}) > 1 else {}
+    summary["warning"] = {k: v for k, v in warning.items() if k != "leave_one_out_runs"}
+    if args.fit:
+        print("weights refit on every run:", warning.get("weights_all"))
+    targets = {"davis first frame only j_mean": 0.75, "davis keyframe every 10 j_mean": 0.92,
+               "whole command fps": 15, "synth keyframes every 60, each object": 0.93,
+               "warning precision and recall (J < 0.7)": 0.9}
+    frames = [{"data": r["data"], "setting": r["setting"], **r.pop("_frames")} for r in runs]
+    atomic.write_json(args.out / "masks_frames.json", frames)
+    write_results(args.out, "masks", runs, quick=args.quick, threads=THREADS, targets=targets, summary=summary,
+                  warning_runs=warning.get("leave_one_out_runs", []),
+                  note="every run is the whole `interreal masks` command (start-up, previews, writing) on a shared "
+                       "2-core machine: times are pessimistic")
+    scatter_chart(args.out / "masks.png", chart_points(runs, summary), "s_per_frame", "j_mean",
+                  label=lambda r: r["label"], logx=True,
+                  xlabel="seconds per frame, whole `interreal masks` command (log)",
+                  ylabel="J (mean over sequences)", title="interreal masks: accuracy vs time, every setting")
+    print_table(runs, ["data", "setting", "variant", "keyframes", "j_mean", "predicted_j", "warned", "lost_warned",
+                       "fps", "s_per_frame", "per_object"], title="masks")
+    print(json.dumps(summary, indent=1))
     return 0
+
+
+def chart_points(runs: list[dict], summary: dict) -> list[dict]:
+    """One point per setting: mean J and mean seconds per frame over the sequences (the effort curve joined)."""
+    pts = []
+    for (setting, variant) in sorted({(r["setting"], r["variant"]) for r in runs if not r["setting"].startswith("effort")}):
+        rs = [r for r in runs if r["setting"] == setting and r["variant"] == variant]
+        pts.append({"label": setting + ("" if variant == "ours" else f" {variant}"), "group": "protocols",
+                    "j_mean": float(np.mean([r["j_mean"] for r in rs])),
+                    "s_per_frame": float(np.mean([r["s_per_frame"] for r in rs]))})
+    for c in summary.get("effort_curve", []):
+        pts.append({"label": f"{c['keyframes_per_100_asked']}/100", "group": "effort (suggested keyframes)",
+                    "j_mean": c["j_mean"], "s_per_frame": c["s_per_frame"]})
+    return pts
+
+
+def summarise(runs: list[dict], seqs: list[str], curves: dict[str, list[dict]]) -> dict:
+    """Means per setting over DAVIS, the effort curve, keyframes each sequence needs for J >= 0.9, the synth."""
+    out: dict = {"sequences": seqs}
+    ours = [r for r in runs if r["variant"] == "ours"]
+    if curves:
+        out["effort_curve"] = [{"keyframes_per_100_asked": level,
+                                "keyframes_per_100": round(float(np.mean([c[i]["keyframes_per_100"] for c in curves.values()])), 2),
+                                "j_mean": round(float(np.mean([c[i]["j_mean"] for c in curves.values()])), 4),
+                                "s_per_frame": round(float(np.mean([c[i]["s_per_frame"] for c in curves.values()])), 4)}
+                               for i, level in enumerate(EFFORT)]
+    for s in ("first", "every10", "synth60"):
+        rs = [r for r in ours if r["setting"] == s]
+        if not rs:
+            continue
+        out[s] = {"j_mean": round(float(np.mean([r["j_mean"] for r in rs])), 4),
+                  "keyframes_per_100": round(float(np.mean([r["keyframes_per_100"] for r in rs])), 2),
+                  "fps_whole_command": round(sum(r["frames"] for r in rs) / sum(r["wall_s"] for r in rs), 2),
+                  "sequences": len(rs)}
+    need = {}
+    for seq in seqs:
+        ok = sorted((r["keyframes_per_100"], r["keyframes"]) for r in ours if r["data"] == seq and r["j_mean"] >= 0.9)
+        need[seq] = ok[0][1] if ok else None
+    out["keyframes_for_j_0.9"] = need
+    synth = [r for r in ours if r["data"] == "synth"]
+    if synth:
+        out["synth60"]["per_object"] = synth[0]["per_object"]
+    return out
 
 
 if __name__ == "__main__":

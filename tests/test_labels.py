@@ -102,7 +102,7 @@ def test_import_csv_with_units_adds_objects(ds, tmp_path):
     csv = tmp_path / "states.csv"
     csv.write_text("frame,object,value,unit\n0,fridge door,0,deg\nframe_00042,fridge door,90,deg\n"
                    "5,top drawer,20,cm\n10,top drawer,0.75,\n")
-    res = L.import_labels(ds, csv, degrees="0:90", cm=(0, 40))
+    res = L.import_labels(ds, csv, degrees="0:90", cm=(0, 40), add_objects=True)  # new objects only on request
     assert res["imported"] == 4 and res["added_objects"] == ["top drawer"]
     assert read_mapping(ds) == {0: "fridge door", 1: "top drawer"}
     assert read_labels(ds) == {"frame_00000": {"fridge door": 0.0}, "frame_00005": {"top drawer": 0.5},
@@ -135,7 +135,9 @@ def test_import_yaml_synth_format(ds, tmp_path, capsys):
     assert "frame 77 is not among the dataset's frames" in capsys.readouterr().err
     assert run(ds, "--from", str(states), "--no-new-objects", "--skip-unknown-frames") == 2
     assert "unknown objects ['top drawer']" in capsys.readouterr().err
-    assert run(ds, "--from", str(states), "--skip-unknown-frames") == 0
+    assert run(ds, "--from", str(states), "--skip-unknown-frames") == 2  # new objects only with --add-objects
+    assert "unknown objects ['top drawer']" in capsys.readouterr().err
+    assert run(ds, "--from", str(states), "--skip-unknown-frames", "--add-objects") == 0
     assert read_labels(ds) == {"frame_00000": {"fridge door": 0.0, "top drawer": 0.1},
                                "frame_00042": {"fridge door": 1.0}}
     rep = read_report(ds, "labels")

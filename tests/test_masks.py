@@ -460,20 +460,23 @@ def test_fast_view_motion_between_keyframes_is_reported(tmp_path):
     sparse, dense = out["sparse"]["figures"], out["dense"]["figures"]
     assert 0.2 < sparse["max_keyframe_reach"] < 0.26  # 15 frames x 3.1 %, halved: reached from both ends
     assert dense["max_keyframe_reach"] < MAX_REACH
-    warned = [w for w in out["sparse"]["warnings"] if w["cause"] == "masks-unreliable"]
-    assert len(warned) == 1 and ("00007" in warned[0]["message"] or "00008" in warned[0]["message"])
-    assert not [w for w in out["dense"]["warnings"] if w["cause"] == "masks-unreliable"]
+    # the reach is measured, but a warning says the masks are poor: here the painted disk is tracked well
+    assert mean_iou(ds, truths, [0, 3, 6, 9, 12, 15], 1)[0] > 0.8
+    for name in out:
+        assert not [w for w in out[name]["warnings"] if w["cause"] == "masks-unreliable"], out[name]["warnings"]
 
 
 def test_cli_prints_the_reports_warnings(tmp_path, capsys):
     from interreal.cli import main
 
-    images, truths = panning_sequence(16, 4)
+    images, truths = panning_sequence(16, 2)
+    for t in range(6, 10):  # the disk is painted over: gone, though both keyframes show it
+        images[t][truths[t] > 0] = images[t][truths[t] == 0].mean(0).astype(np.uint8)
     ds = make_ds(tmp_path, images)
     keys = write_keys(tmp_path / "keys", truths, [0, 15], ["disk"])
     assert main(["masks", str(ds), "--keyframes", str(keys), "--quiet", "--preview", "none"]) == 0
     out = capsys.readouterr().out
-    assert "warning (masks): masks may be unreliable: the view moves too far between keyframes" in out
+    assert "warning (masks): 'disk': object lost at frames 6-9" in out, out
 
 
 def test_unchanged_rerun_reuses_the_masks(tmp_path):

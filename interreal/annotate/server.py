@@ -4,13 +4,28 @@ Security model: the app can write the dataset, so a web page open in the same br
 - Every request carries the per-run token (`?token=` on the page URL, then a cookie named per port for images
   and the `X-Interreal-Token` header, which writes require: a cross-site page can send neither).
 - The Host header must name this server (127.0.0.1 / localhost / [::1] and the port): defeats DNS rebinding.
-- Paths containing `..` get 404, and every file is found from a frame id, never from a path in the URL.
+  With `--host 0.0.0.0` (or `::`) the machine's own names and addresses are allowed too, so other machines can
+  connect as the warning says; they still need the token.
+- Paths containing `..` get 404, and every file is found from a frame id, never from a path in the URL; a file
+  that resolves outside the dataset (a symlink out of images/, keyframes/, masks/) is refused with 403.
+- Request size: a body over the limit (`--max-request-mb`, default 4 MiB, many times the largest request the page
+  sends: a 10 000-point polygon is under 0.5 MiB) is answered 413 before it is read: by its Content-Length, or,
+  for a streamed (chunked) body, as soon as the bytes received pass the limit. The server holds at most the limit
+  of any one body, so memory is bounded by it (parsing a body at the limit made of tiny JSON values costs about
+  20x its size, ~80 MiB at 4 MiB; a 52 MiB body costs nothing: it is refused unread).
+- Bad input is 400 with a message naming what was wrong (JSON bodies are type-checked field by field; NaN and
+  Infinity are refused), an unknown frame 404, an edit conflict 409; an unexpected exception is logged on the
+  server's terminal and answered 500 without a traceback.
 """
 
 from __future__ import annotations
 
 import base64
 import inspect
+import ipaddress
+import json
+import logging
+import math
 import secrets
 import socket
 import threading
@@ -21,13 +36,18 @@ from pathlib import Path
 from typing import Any, Callable
 from urllib.parse import unquote
 
-from ..errors import InterRealError, MissingExtraError
-from .store import Conflict, DatasetStore, UnknownFrame, encode_index_png
+from ..errors import InputError, InterRealError, MissingExtraError
+from .store import Conflict, DatasetStore, Outside, UnknownFrame, encode_index_png
+
+log = logging.getLogger("interreal.annotate")
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 STATIC_FILES = {"app.js": "text/javascript; charset=utf-8", "app.css": "text/css; charset=utf-8"}
 TOKEN_HEADER = "x-interreal-token"
 LOCAL_NAMES = ("127.0.0.1", "localhost", "[::1]")
+WILDCARD_HOSTS = ("0.0.0.0", "::", "")
+DEFAULT_MAX_REQUEST_MB = 4.0
+MiB = 1 << 20
 
 
 def _require_web() -> None:
@@ -159,12 +179,34 @@ def _summarise(out: Any) -> dict[str, Any]:
 # The app
 # --------------------------------------------------------------------------------------------------------------------
 class Guard:
-    """ASGI middleware: `..` -> 404, foreign Host -> 403, missing / wrong token -> 403 (before any route runs)."""
+    """ASGI middleware, before any route runs: `..` -> 404, foreign Host / Origin -> 403, missing or wrong token
+    -> 403, body over `max_body` bytes -> 413 (never buffered past the limit); and the last line of defence: an
+    exception escaping the app is logged here and answered 500 without a traceback."""
 
-    def __init__(self, app, token: str, hosts: set[str], cookie: str):
-        self.app, self.token, self.hosts, self.cookie = app, token, hosts, cookie
+    def __init__(self, app, token: str, hosts: set[str], cookie: str, max_body: int = int(DEFAULT_MAX_REQUEST_MB * MiB)):
+        self.app, self.token, self.hosts, self.cookie, self.max_body = app, token, hosts, cookie, max_body
 
     async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self._checked(scope, receive, send)
+        started = False
+
+        async def tracking_send(msg):
+            nonlocal started
+            if msg["type"] == "http.response.start":
+                started = True
+            await send(msg)
+
+        try:
+            return await self._checked(scope, receive, tracking_send)
+        except Exception:  # a server bug: the client gets a line, the terminal the traceback
+            log.error("annotate: unexpected error on %s %s\n%s", scope.get("method"), scope.get("path"),
+                      traceback.format_exc())
+            if not started:
+                await _plain(send, 500, "internal error in the annotation server (details on its terminal); "
+                                        "please report it", close=True)
+
+    async def _checked(self, scope, receive, send):
         if scope["type"] == "lifespan":
             return await self.app(scope, receive, send)
         if scope["type"] != "http":
@@ -181,7 +223,20 @@ class Guard:
             return await _plain(send, 403, "forbidden: cross-origin request")
         if not self._token_ok(scope, headers):
             return await _plain(send, 403, "forbidden: open the URL with the token that `interreal annotate` printed")
-        return await self.app(scope, receive, send)
+        limit = f"{self.max_body / MiB:g} MiB"
+        length = headers.get("content-length")
+        if length is not None:
+            if not (length.isascii() and length.strip().isdigit()):
+                return await _plain(send, 400, f"bad Content-Length {length[:40]!r}", close=True)
+            size = int(length.strip()) if len(length.strip()) <= 15 else 10 ** 15  # (int() refuses 5000 digits)
+            if size > self.max_body:
+                return await _plain(send, 413, f"request body of {size / MiB:.1f} MiB is over the limit of "
+                                               f"{limit} (interreal annotate --max-request-mb)", close=True)
+        body = await _read_body(receive, self.max_body)
+        if body is None:
+            return await _plain(send, 413, f"request body is over the limit of {limit} "
+                                           f"(interreal annotate --max-request-mb)", close=True)
+        return await self.app(scope, _replay(body, receive), send)
 
     def _token_ok(self, scope, headers: dict[str, str]) -> bool:
         given = headers.get(TOKEN_HEADER)
@@ -200,29 +255,134 @@ class Guard:
         return given is not None and secrets.compare_digest(given.encode(), self.token.encode())
 
 
-async def _plain(send, status: int, text: str) -> None:
+async def _read_body(receive, limit: int) -> bytes | None:
+    """The whole request body, or None as soon as more than `limit` bytes arrived (the rest is never read)."""
+    chunks, size = [], 0
+    while True:
+        msg = await receive()
+        if msg["type"] != "http.request":  # http.disconnect: the client has gone
+            break
+        chunk = msg.get("body", b"")
+        size += len(chunk)
+        if size > limit:
+            return None
+        chunks.append(chunk)
+        if not msg.get("more_body", False):
+            break
+    return b"".join(chunks)
+
+
+def _replay(body: bytes, receive):
+    """An ASGI receive that gives the app the body read already, then waits on the real one (for disconnects)."""
+    sent = False
+
+    async def replay():
+        nonlocal sent
+        if not sent:
+            sent = True
+            return {"type": "http.request", "body": body, "more_body": False}
+        return await receive()
+
+    return replay
+
+
+async def _plain(send, status: int, text: str, close: bool = False) -> None:
     body = text.encode()
-    await send({"type": "http.response.start", "status": status,
-                "headers": [(b"content-type", b"text/plain; charset=utf-8"), (b"content-length", str(len(body)).encode()),
-                            (b"cache-control", b"no-store")]})
+    headers = [(b"content-type", b"text/plain; charset=utf-8"), (b"content-length", str(len(body)).encode()),
+               (b"cache-control", b"no-store")]
+    if close:  # the body was not (all) read: the connection cannot carry another request
+        headers.append((b"connection", b"close"))
+    await send({"type": "http.response.start", "status": status, "headers": headers})
     await send({"type": "http.response.body", "body": body})
 
 
+def machine_addresses(host: str) -> list[str]:
+    """The names and addresses other machines may use to reach a server bound to a wildcard `host`.
+
+    The host name, its fully qualified name, what they resolve to, every interface address (Linux), and the
+    address of the default route. IPv4 only for 0.0.0.0; both families for `::` (a dual-stack socket).
+    """
+    if host not in WILDCARD_HOSTS:
+        return []
+    names: set[str] = set()
+    for name in (socket.gethostname(), socket.getfqdn()):
+        if name:
+            names.add(name)
+            try:
+                names |= {info[4][0] for info in socket.getaddrinfo(name, None)}
+            except (OSError, UnicodeError):
+                pass
+    names |= _interface_addresses()
+    for family, target in ((socket.AF_INET, "192.0.2.1"), (socket.AF_INET6, "2001:db8::1")):
+        try:  # connect() on UDP sends nothing: it only picks the interface of the default route
+            with socket.socket(family, socket.SOCK_DGRAM) as s:
+                s.connect((target, 9))
+                names.add(s.getsockname()[0])
+        except OSError:
+            pass
+    out = []
+    for name in names:
+        name = name.split("%", 1)[0]
+        try:
+            ip = ipaddress.ip_address(name)
+        except ValueError:
+            if name.lower() != "localhost":
+                out.append(name.lower())
+            continue
+        if ip.is_loopback or ip.is_unspecified or ip.is_link_local or (ip.version == 6 and host == "0.0.0.0"):
+            continue
+        out.append(f"[{ip}]" if ip.version == 6 else str(ip))
+    return sorted(set(out))
+
+
+def _interface_addresses() -> set[str]:
+    """IPv4 addresses of every network interface (Linux ioctl) and IPv6 ones from /proc; empty elsewhere."""
+    out: set[str] = set()
+    try:
+        import fcntl
+        import struct
+
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            for _, name in socket.if_nameindex():
+                try:
+                    req = struct.pack("256s", name.encode()[:15])
+                    out.add(socket.inet_ntoa(fcntl.ioctl(s.fileno(), 0x8915, req)[20:24]))  # SIOCGIFADDR
+                except OSError:
+                    continue
+    except (ImportError, OSError, AttributeError):
+        pass
+    try:
+        for line in Path("/proc/net/if_inet6").read_text().splitlines():
+            raw = line.split()[0]
+            out.add(str(ipaddress.IPv6Address(bytes.fromhex(raw))))
+    except (OSError, ValueError, IndexError):
+        pass
+    return out
+
+
 def allowed_hosts(host: str, port: int) -> set[str]:
+    """Host header values this server answers to: loopback names, the bound address, and for a wildcard bind the
+    machine's own names and addresses (never an arbitrary name: that is what stops DNS rebinding)."""
     names = set(LOCAL_NAMES)
-    if host not in ("0.0.0.0", "::", ""):
+    if host not in WILDCARD_HOSTS:
         names.add(f"[{host}]" if ":" in host else host)
+    names |= set(machine_addresses(host))
     hosts = {f"{n}:{port}".lower() for n in names}
     if port == 80:  # browsers leave the default port out of the Host header
         hosts |= {n.lower() for n in names}
     return hosts
 
 
-def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1"):
+def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1",
+               max_request_mb: float = DEFAULT_MAX_REQUEST_MB):
     """The ASGI app for one dataset, one token and the port it is served on."""
     _require_web()
-    from fastapi import Body, FastAPI, HTTPException, Request
+    from fastapi import Depends, FastAPI, HTTPException, Request
+    from fastapi.exceptions import RequestValidationError
     from fastapi.responses import HTMLResponse, JSONResponse, Response
+
+    if not (isinstance(max_request_mb, (int, float)) and math.isfinite(max_request_mb) and max_request_mb > 0):
+        raise InputError(f"--max-request-mb {max_request_mb}: give a positive size in MiB, e.g. 4")
 
     store = DatasetStore(ds)
     prop = Propagation(store.ds, frames=lambda: len(store.frame_list()))
@@ -240,7 +400,21 @@ def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1"):
 
     @app.exception_handler(UnknownFrame)
     async def _missing(_req: Request, exc: UnknownFrame):
-        return JSONResponse({"error": f"no frame {exc} in this dataset"}, status_code=404)
+        return JSONResponse({"error": f"no frame {str(exc)[:40]!r} in this dataset (frame ids are the numbers "
+                                      f"of DS/images/frame_NNNNN.*, e.g. 00042)"}, status_code=404)
+
+    @app.exception_handler(Outside)
+    async def _outside(_req: Request, exc: Outside):
+        return JSONResponse({"error": str(exc)}, status_code=403)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(_req: Request, exc: RequestValidationError):
+        return JSONResponse({"error": f"malformed request: {exc.errors()[:3]}"}, status_code=400)
+
+    @app.exception_handler(Exception)
+    async def _bug(req: Request, exc: Exception):  # ServerErrorMiddleware: Guard logs the traceback
+        return JSONResponse({"error": f"internal error in the annotation server ({type(exc).__name__}); the "
+                                      f"details are on its terminal: please report it"}, status_code=500)
 
     nocache = {"Cache-Control": "no-store"}
     page_headers = {
@@ -265,15 +439,14 @@ def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1"):
     def state() -> dict[str, Any]:
         store.refresh_frames()
         mapping, mversion = store.objects()
-        labels, lversion = store.labels()
-        from ..dataset import read_prompts
+        labels, lversion, bad_labels = store.labels()
 
         return {
             "dataset": str(store.ds), "name": store.ds.name,
             "frames": store.frame_list(),
             "objects": [{"id": i, "name": n} for i, n in sorted(mapping.items())],
-            "prompts": read_prompts(store.ds), "mapping_version": mversion,
-            "labels": labels, "labels_version": lversion,
+            "prompts": store.prompts(), "mapping_version": mversion,
+            "labels": labels, "labels_version": lversion, "bad_labels": bad_labels,
             "keyframes": store.keyframe_fids(), "keyframe_stamps": store.keyframe_stamps(),
             "labelme": store.labelme_fids(),
             "masks": store.mask_fids(), "suggested": store.suggested(), "propagation": prop.status(),
@@ -309,51 +482,174 @@ def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1"):
         index, versions = store.keyframe(fid)
         return JSONResponse(keyframe_json(fid, index, versions), headers=nocache)
 
+    async def body(request: Request) -> Fields:
+        return Fields(parse_json(await request.body()), request.url.path)
+
+    body.__annotations__ = {"request": Request, "return": Fields}  # FastAPI reads them; Request is a local import
+
     @app.post("/api/keyframe/{fid}")
-    def edit_keyframe(fid: str, op: dict = Body(...)):
+    def edit_keyframe(fid: str, b: Fields = Depends(body)):
+        op = {"object": b.integer("object"), "name": b.text("name", None), "shape": b.choice("shape", ("polygon", "box")),
+              "points": b.points("points"), "mode": b.choice("mode", ("paint", "erase")),
+              "versions": b.versions("versions")}
         index, versions = store.edit_keyframe(fid, op)
         return keyframe_json(fid, index, versions)
 
     @app.post("/api/keyframe/{fid}/undo")
-    def undo_keyframe(fid: str, body: dict = Body(...)):
-        index, versions = store.undo_keyframe(fid, body.get("versions") or {})
+    def undo_keyframe(fid: str, b: Fields = Depends(body)):
+        index, versions = store.undo_keyframe(fid, b.versions("versions"))
         return keyframe_json(fid, index, versions)
 
     @app.post("/api/keyframe/{fid}/delete")
-    def delete_keyframe(fid: str, body: dict = Body(...)):
-        store.delete_keyframe(fid, body.get("versions") or {})
+    def delete_keyframe(fid: str, b: Fields = Depends(body)):
+        store.delete_keyframe(fid, b.versions("versions"))
         return keyframe_json(fid, None, {})
 
     @app.post("/api/labels")
-    def edit_labels(body: dict = Body(...)):
-        return store.edit_labels(body.get("edits"), body.get("version"))
+    def edit_labels(b: Fields = Depends(body)):
+        return store.edit_labels(b.edits("edits"), b.text("version", None))
 
     @app.post("/api/objects")
-    def add_object(body: dict = Body(...)):
-        store.add_object(body.get("name", ""), body.get("description") or None)
+    def add_object(b: Fields = Depends(body)):
+        store.add_object(b.text("name"), b.text("description", None) or None)
         return state()
 
     @app.post("/api/objects/rename")
-    def rename_object(body: dict = Body(...)):
-        store.rename_object(str(body.get("old", "")), body.get("new", ""))
+    def rename_object(b: Fields = Depends(body)):
+        store.rename_object(b.text("old"), b.text("new"))
         return state()
 
     @app.post("/api/objects/describe")
-    def describe_object(body: dict = Body(...)):
-        store.describe_object(str(body.get("name", "")), str(body.get("text", "")))
+    def describe_object(b: Fields = Depends(body)):
+        store.describe_object(b.text("name"), b.text("text"))
         return state()
 
     @app.post("/api/propagate")
     def propagate():
         if not store.keyframe_fids():
             raise InterRealError("draw at least one keyframe mask before propagating")
-        return prop.start(store.ds / "keyframes")
+        return prop.start(store.inside(store.ds / "keyframes"))
 
     @app.get("/api/propagate")
     def propagate_status():
         return JSONResponse(prop.status(), headers=nocache)
 
-    return Guard(app, token, allowed_hosts(host, port), cookie)
+    return Guard(app, token, allowed_hosts(host, port), cookie, max_body=int(max_request_mb * MiB))
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Request bodies
+# --------------------------------------------------------------------------------------------------------------------
+_REQUIRED = object()
+MAX_POINTS = 10000  # a polygon's vertices; the page sends far fewer
+
+
+def parse_json(raw: bytes) -> Any:
+    """The JSON document of a request body; InputError (HTTP 400) naming what is wrong with it."""
+    if not raw.strip():
+        raise InputError("this request needs a JSON body")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise InputError("the body is not UTF-8 text (send JSON)") from None
+    try:
+        return json.loads(text, parse_constant=_no_constant)
+    except RecursionError:
+        raise InputError("the JSON body is nested too deeply") from None
+    except ValueError as exc:  # JSONDecodeError, NaN / Infinity, a number of thousands of digits
+        raise InputError(f"the body is not valid JSON: {str(exc)[:120]}") from None
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a number (send a finite number or null)")
+
+
+def _finite(value: Any) -> bool:
+    """A JSON number that is a finite float (true/false and 400-digit integers are not)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
+def _kind(value: Any) -> str:
+    """The JSON name of a value's type, for messages."""
+    if value is None:
+        return "null"
+    for t, name in ((bool, "true/false"), (str, "a string"), (int, "an integer"), (float, "a number"),
+                    (list, "a list"), (dict, "an object")):
+        if isinstance(value, t):
+            return name
+    return type(value).__name__
+
+
+class Fields:
+    """A JSON object body read field by field with the type each must have: a missing or mistyped field is an
+    InputError (HTTP 400) naming the field, what it must be and what it was."""
+
+    def __init__(self, doc: Any, where: str):
+        if not isinstance(doc, dict):
+            raise InputError(f"{where}: the body must be a JSON object {{...}}, not {_kind(doc)}")
+        self.doc, self.where = doc, where
+
+    def _get(self, key: str, default: Any) -> Any:
+        """The field's value; `default` when it is absent or null, unless it is required (then null is wrong)."""
+        if default is not _REQUIRED and self.doc.get(key) is None:
+            return default
+        if key not in self.doc:
+            raise InputError(f"{self.where}: the field {key!r} is missing")
+        return self.doc[key]
+
+    def _wrong(self, key: str, want: str) -> InputError:
+        return InputError(f"{self.where}: {key!r} must be {want}, not {_kind(self.doc[key])}")
+
+    def text(self, key: str, default: Any = _REQUIRED) -> Any:
+        value = self._get(key, default)
+        if value is not default and not isinstance(value, str):
+            raise self._wrong(key, "a string")
+        return value
+
+    def integer(self, key: str, default: Any = _REQUIRED) -> Any:
+        value = self._get(key, default)
+        if value is not default and (isinstance(value, bool) or not isinstance(value, int)):
+            raise self._wrong(key, "an integer")
+        return value
+
+    def choice(self, key: str, options: tuple[str, ...]) -> str:
+        value = self.text(key, options[0])
+        if value not in options:
+            raise InputError(f"{self.where}: {key!r} is {value[:40]!r}; use one of {', '.join(options)}")
+        return value
+
+    def versions(self, key: str) -> dict[str, str]:
+        """The {index value: hash} map read with a keyframe ({} when absent)."""
+        value = self._get(key, {})
+        if not isinstance(value, dict) or not all(isinstance(v, str) for v in value.values()):
+            raise self._wrong(key, "the object of versions read with the keyframe ({\"1\": \"hash\", ...})")
+        return value
+
+    def points(self, key: str) -> list[list[float]]:
+        value = self._get(key, _REQUIRED)
+        if not isinstance(value, list):
+            raise self._wrong(key, "a list of [x, y] pairs")
+        if len(value) > MAX_POINTS:
+            raise InputError(f"{self.where}: {len(value)} points; a shape may have at most {MAX_POINTS}")
+        for p in value:
+            if not (isinstance(p, list) and len(p) == 2
+                    and all(_finite(c) for c in p)):
+                raise InputError(f"{self.where}: {key!r} must be a list of [x, y] pairs of numbers; "
+                                 f"found {json.dumps(p)[:40]}")
+        return value
+
+    def edits(self, key: str) -> list[dict[str, Any]]:
+        value = self._get(key, _REQUIRED)
+        if not isinstance(value, list):
+            raise self._wrong(key, "a list of {frame, object, value, base}")
+        if not value:
+            raise InputError(f"{self.where}: no edits given")
+        return value
 
 
 def _html(text: str) -> str:
@@ -368,7 +664,8 @@ def _html(text: str) -> str:
 class AnnotateServer:
     """A bound socket + uvicorn server; `serve_forever()` in the foreground or `start()` in a thread (tests)."""
 
-    def __init__(self, ds: str | Path, host: str = "127.0.0.1", port: int = 0, token: str | None = None):
+    def __init__(self, ds: str | Path, host: str = "127.0.0.1", port: int = 0, token: str | None = None,
+                 max_request_mb: float = DEFAULT_MAX_REQUEST_MB):
         _require_web()
         import uvicorn
 
@@ -378,7 +675,7 @@ class AnnotateServer:
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self.sock.bind((host, port))
         self.host, self.port = host, self.sock.getsockname()[1]
-        self.app = create_app(ds, self.token, self.port, host)
+        self.app = create_app(ds, self.token, self.port, host, max_request_mb=max_request_mb)
         config = uvicorn.Config(self.app, log_level="warning", access_log=False, lifespan="off")
         self.server = uvicorn.Server(config)
         self._thread: threading.Thread | None = None
@@ -387,6 +684,13 @@ class AnnotateServer:
     def url(self) -> str:
         shown = "127.0.0.1" if self.host in ("0.0.0.0", "") else (f"[{self.host}]" if ":" in self.host else self.host)
         return f"http://{shown}:{self.port}/?token={self.token}"
+
+    @property
+    def remote_urls(self) -> list[str]:
+        """The page's URL as other machines may open it (wildcard binds only; IP addresses first)."""
+        names = machine_addresses(self.host)
+        names.sort(key=lambda n: (not (n[0].isdigit() or n.startswith("[")), n))
+        return [f"http://{n}:{self.port}/?token={self.token}" for n in names]
 
     def serve_forever(self) -> None:
         self.server.run(sockets=[self.sock])

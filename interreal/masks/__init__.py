@@ -1,7 +1,8 @@
 """`interreal masks`: propagate a few keyframe masks to every frame with OpenCV flow, with confidence.
 
 Modules: keyframes (PNG / LabelMe input, GrabCut for boxes), flow (DIS / RLOF / Farneback, forward-backward
-trust), appearance (per-label colour models), track (chains, fusion, refinement), confidence, preview, stage.
+trust), appearance (per-label colour models), track (chains, fusion, refinement), confidence (where to add
+keyframes), health (lost / jumped / drifting per frame, a predicted J, the warnings), preview, stage.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ def main(args: argparse.Namespace) -> int:
                     refine=not args.no_refine, suggest=args.suggest, preview=args.preview, progress=not args.quiet)
     print(f"masks: {fig['frames']} frames, {len(fig['objects'])} objects, {fig['fps']:.1f} frames/s")
     for name, c in fig["confidence_mean"].items():
-        print(f"  {name}: mean confidence {c:.2f}, min {fig['confidence_min'][name]:.2f}")
+        print(f"  {name}: predicted J {c:.2f} (lowest frame {fig['confidence_min'][name]:.2f})")
     for line in warning_lines(args.dataset, ["masks"]):
         print(line)
     if args.suggest > 0:

@@ -37,6 +37,13 @@ def thumb(image: np.ndarray, labels: np.ndarray, width: int, caption: str) -> np
     return t
 
 
+def second_line(tile: np.ndarray, text: str, alert: bool = False) -> None:
+    """A second caption line, drawn once the whole sequence is judged (state and confidence); red on alert."""
+    colour = (255, 80, 80) if alert else (255, 255, 255)
+    cv2.putText(tile, text, (4, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(tile, text, (4, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, 1, cv2.LINE_AA)
+
+
 def contact_sheet(path: Path, tiles: list[np.ndarray], cols: int = 6) -> None:
     if not tiles:
         return

@@ -11,27 +11,25 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from .. import atomic
+from .. import atomic, provenance
 from ..conventions import IMAGES_DIR, FRAME_PREFIX, frame_id, frame_index, index_to_onehot, mask_file
 from ..dataset import list_images, read_image_rgb, read_mapping, write_mapping, write_mask
 from ..errors import InputError
 from ..report import StageReport, files_fingerprint, finished_with, fingerprint, tree_fingerprint
 from .appearance import AppearanceConfig
-from .confidence import frame_confidence, keyframe_reach, reach_suggestion, suggest_frames
+from .confidence import keyframe_reach, reach_suggestion, suggest_frames
+from . import health as H
 from .flow import FlowConfig
 from .keyframes import load_keyframes
 from ..video import VideoWriter
-from .preview import contact_sheet, thumb
-from .track import Propagator, TrackConfig, auto_work_long_side
+from .preview import contact_sheet, second_line, thumb
+from .track import Propagator, TrackConfig, _argmax_labels, auto_work_long_side
 
 SFM_MASKS_DIR = "sfm_masks"
 PREVIEWS_DIR = "previews"
 PREVIEW_KINDS = ("sheet", "video", "both", "none")
 
 
-# share of non-keyframes with low confidence above which an object's masks are called unreliable
-# (stress suite, 40-frame captures: usable runs had 45-63 % flagged at IoU >= 0.89, unusable ones 71-92 %)
-UNRELIABLE_FRACTION = 0.7
 # Farthest a propagated frame may lie from its nearest keyframe, in image widths of view motion. Measured (mean
 # IoU of the worst object): 0.05-0.09 -> 0.89-0.94 (DAVIS every 10th frame, simulated captures at normal speed);
 # 0.135 -> 0.84 (3x camera speed); 0.25-0.27 -> 0.74-0.80; DAVIS first frame only: 0.49 -> 0.91, 0.54 -> 0.81.
@@ -83,9 +81,11 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
         if progress:
             print(f"masks: {len(fids)} frames' masks are up to date (same frames, keyframes and settings)")
         return done["figures"]
+    fingerprints = provenance.fingerprints(ds, ["images", "capture"], keyframes=keyframes_dir)  # before any read
     first = read_image_rgb(images[0])
     size = (first.shape[1], first.shape[0])
     ds_mapping = read_mapping(ds)
+    _refuse_duplicate_names(ds / "mapping.yaml", list(ds_mapping.values()))
     pos_of = {f: i for i, f in enumerate(fids)}
 
     def image_of(fid: str) -> np.ndarray:
@@ -101,12 +101,13 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
     t0 = time.perf_counter()
     kf = load_keyframes(keyframes_dir, fids, size, ds_mapping, image_of=image_of)
     t_kf = time.perf_counter() - t0
+    _refuse_duplicate_names(Path(keyframes_dir), list(kf.names))
     n_obj = len(kf.names)
     anchors = {pos_of[f]: m for f, m in kf.masks.items()}
     if cfg.work_long_side < 0:
         cfg = replace(cfg, work_long_side=auto_work_long_side(anchors, len(fids)))
     inputs = {"keyframes_dir": str(keyframes_dir), "keyframes": kf.sources, "frames": len(fids),
-              "size": list(size), "objects": kf.names}
+              "size": list(size), "objects": kf.names, "fingerprints": fingerprints}
     settings = {**asdict(cfg), "suggest": suggest, "preview": preview}
     with StageReport(ds, "masks", inputs=inputs, settings=settings, resume_key=key) as rep:
         rep.steps["keyframes"] = {"wall_s": round(t_kf, 4)}
@@ -115,8 +116,9 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
         dil = sfm_dilate if sfm_dilate is not None else max(2, round(0.006 * float(np.hypot(*size))))
         prop = Propagator(load, len(fids), size, n_obj, cfg)
         ref = {p: np.array([(m == k + 1).mean() for k in range(n_obj)]) for p, m in anchors.items()}
-        conf = np.ones((len(fids), n_obj))
-        area = np.zeros((len(fids), n_obj))
+        key_refs = {p: H.key_reference(cv2.resize(load(p), prop.wsize, interpolation=cv2.INTER_AREA),
+                                       _work_labels(m, prop.wsize), n_obj) for p, m in sorted(anchors.items())}
+        cues = _Cues(len(fids), n_obj)
         sheet_pos = set(np.linspace(0, len(fids) - 1, min(len(fids), 24)).round().astype(int).tolist())
         tiles: dict[int, np.ndarray] = {}
         vid_w = min(480, size[0])
@@ -129,15 +131,11 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
                 tw, cw = time.perf_counter(), time.process_time()
                 write_mask(ds, fids[res.pos], index_to_onehot(res.labels, n_obj))
                 _write_sfm_mask(ds, images[res.pos].name, res.labels, dil)
-                if res.keyframe:
-                    area[res.pos] = ref[res.pos]
-                else:
-                    conf[res.pos], area[res.pos] = frame_confidence(
-                        res.soft, res.fwd, res.bwd, res.trust, res.dist, _ref_area(ref, res.pos))
+                cues.add(res, prop, key_refs)
                 if preview != "none":
                     image = prop.cache.peek(res.pos)
                     image = load(res.pos) if image is None else image
-                    cap = f"{fids[res.pos]}{' key' if res.keyframe else ''} c={conf[res.pos].min():.2f}" if n_obj else fids[res.pos]
+                    cap = f"{fids[res.pos]}{' key' if res.keyframe else ''}"
                     if preview in ("sheet", "both") and res.pos in sheet_pos:
                         tiles[res.pos] = thumb(image, res.labels, 240, cap)
                     if preview in ("video", "both"):
@@ -153,7 +151,22 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
             info.update(frames=len(fids), flow_pairs=prop.flow_pairs, compute_s=round(compute, 3),
                         write_s=round(t_write, 3), fps=round(len(fids) / max(compute, 1e-9), 2),
                         cpu_s=round(cpu, 3), cpu_fps=round(len(fids) / max(cpu, 1e-9), 2))
+        is_key = np.zeros(len(fids), bool)
+        is_key[list(anchors)] = True
+        motion = np.array([prop.motion.get(t, 0.0) for t in range(len(fids) - 1)])
+        keys = sorted(anchors)
+        ref_area = np.stack([_ref_area(ref, i) for i in range(len(fids))])
+        feats = H.build_features(cues.area, ref_area, cues.appearance, cues.edges, cues.trust, cues.agree,
+                                 cues.centroid, H.reach_per_frame(motion, keys, len(fids)), cues.thin)
+        expected = _expected(ref, len(fids))
+        hl = H.assess(feats, cues.area, ref_area, expected, is_key)
+        conf = hl.predicted  # the honest confidence: a predicted J, calibrated on real footage
         with rep.step("previews"):
+            for group in (tiles, video):
+                for p, tile in group.items():
+                    worst = int(hl.state[p].max()) if n_obj else 0
+                    text = f"c={conf[p].min():.2f}" + (f" {H.STATES[worst]}" if worst else "") if n_obj else ""
+                    second_line(tile, text, alert=worst > 0)
             prev_dir = ds / PREVIEWS_DIR
             if tiles:
                 contact_sheet(prev_dir / "masks_sheet.png", [tiles[p] for p in sorted(tiles)])
@@ -163,44 +176,115 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
                                  crf=28) as vw:
                     for p in sorted(video):
                         vw.write(video[p])
-        is_key = np.zeros(len(fids), bool)
-        is_key[list(anchors)] = True
         picks = suggest_frames(conf, is_key, suggest)
+        mean_pred = hl.mean_predicted(is_key)
         rep.figures.update({
             "frames": len(fids), "keyframes": sorted(kf.masks), "objects": kf.names,
             "fps": info["fps"], "cpu_fps": info["cpu_fps"],
             "confidence": {n: {fids[i]: round(float(conf[i, k]), 4) for i in range(len(fids))} for k, n in enumerate(kf.names)},
-            "area_fraction": {n: {fids[i]: round(float(area[i, k]), 5) for i in range(len(fids))} for k, n in enumerate(kf.names)},
-            "confidence_mean": {n: round(float(conf[~is_key, k].mean()), 4) if (~is_key).any() else 1.0 for k, n in enumerate(kf.names)},
+            "area_fraction": {n: {fids[i]: round(float(cues.area[i, k]), 5) for i in range(len(fids))} for k, n in enumerate(kf.names)},
+            "confidence_mean": {n: round(float(mean_pred[k]), 4) for k, n in enumerate(kf.names)},
             "confidence_min": {n: round(float(conf[:, k].min()), 4) for k, n in enumerate(kf.names)},
             "suggested_frames": [fids[i] for i in picks],
             "sfm_dilate_px": dil,
+            # per object: predicted J over the propagated frames and the stretches in each state (frame ranges)
+            "health": {n: {"predicted_j": round(float(mean_pred[k]), 4),
+                           **{st: _stretch_text(fids, runs[k]) for st, runs in hl.stretches.items()}}
+                       for k, n in enumerate(kf.names)},
+            "states": {n: {fids[i]: H.STATES[hl.state[i, k]] for i in range(len(fids)) if hl.state[i, k]}
+                       for k, n in enumerate(kf.names)},
+            # the cues behind the predicted J, per object and frame (recipes/bench_masks.py calibrates on them)
+            "cues": {n: {**{f: [round(float(v), 4) for v in feats[:, k, j]] for j, f in enumerate(H.FEATURES)},
+                         "area_share": [round(float(v), 6) for v in cues.area[:, k]],
+                         "ref_share": [round(float(v), 6) for v in ref_area[:, k]],
+                         "expected": [bool(v) for v in expected[:, k]]} for k, n in enumerate(kf.names)},
         })
-        motion = np.array([prop.motion.get(t, 0.0) for t in range(len(fids) - 1)])
-        keys = sorted(anchors)
         reach = keyframe_reach(motion, keys) if len(fids) > 1 else []
         rep.figures["keyframe_reach"] = [{"first": fids[a], "last": fids[b], "reach": round(r, 4)} for a, b, r in reach]
         rep.figures["max_keyframe_reach"] = round(max((r for _, _, r in reach), default=0.0), 4)
         far = sorted((x for x in reach if x[2] > MAX_REACH), key=lambda x: -x[2])
-        if far:
-            where = ", ".join(f"{fids[a]}-{fids[b]} up to {100 * r:.0f} %" for a, b, r in far[:4])
-            add = sorted({fids[reach_suggestion(motion, a, b, keys)] for a, b, _ in far})
-            rep.warn(f"masks may be unreliable: the view moves too far between keyframes for propagation to hold "
-                     f"(distance to the nearest keyframe in image widths: frames {where}; propagation holds to about "
-                     f"{100 * MAX_REACH:.0f} %); fast camera motion or sparse keyframes: add keyframes at "
-                     f"{', '.join(add[:8])}", cause="masks-unreliable")
-        free = max(int((~is_key).sum()), 1)
         for k, n in enumerate(kf.names):
-            low = [i for i in range(len(fids)) if conf[i, k] < 0.5]
-            if len([i for i in low if not is_key[i]]) / free >= UNRELIABLE_FRACTION:
-                rep.warn(f"'{n}': masks are unreliable: low confidence on {len(low)} of {len(fids)} frames (fast motion, "
-                         f"occlusion or too few keyframes); add keyframes (suggested: {', '.join(fids[i] for i in picks[:5])})",
-                         cause="masks-unreliable", object=n)
-            if low:
-                rep.warn(f"'{n}': low mask confidence on {len(low)} frames ({_ranges([fids[i] for i in low])}); "
-                         f"add a keyframe there (suggested: {', '.join(fids[i] for i in picks[:3])})",
-                         cause="propagation", object=n, frames=[fids[i] for i in low])
+            lost = hl.stretches["lost"][k]
+            if lost:
+                where = _stretch_text(fids, lost)
+                rep.warn(f"'{n}': object lost at frames {where}: its mask vanished or collapsed where the keyframes "
+                         f"show it; add a keyframe at {', '.join(fids[a] for a, _ in lost[:5])}",
+                         cause="object-lost", object=n, frames=[fids[i] for a, b in lost for i in range(a, b + 1)])
+            if mean_pred[k] >= H.WARN_J:
+                continue
+            why = [f"{st} at frames {_stretch_text(fids, hl.stretches[st][k])}"
+                   for st in ("lost", "jumped", "drifting") if hl.stretches[st][k]]
+            if far:
+                why.append("the view moves up to " + ", ".join(f"{100 * r:.0f} %" for _, _, r in far[:1])
+                           + f" of its width from the nearest keyframe (propagation holds to about {100 * MAX_REACH:.0f} %)")
+            add = sorted({fids[i] for i in picks[:5]} | {fids[reach_suggestion(motion, a, b, keys)] for a, b, _ in far[:3]})
+            rep.warn(f"'{n}': masks are unreliable (predicted J {mean_pred[k]:.2f}, under {H.WARN_J}): "
+                     f"{'; '.join(why) or 'low confidence throughout'}; add keyframes at {', '.join(add[:8])}",
+                     cause="masks-unreliable", object=n)
         return dict(rep.figures)
+
+
+class _Cues:
+    """Per frame and object, what `health` judges a mask by, gathered as the frames come out of the chains."""
+
+    def __init__(self, n: int, k: int):
+        self.area = np.zeros((n, k))
+        self.appearance = np.ones((n, k))
+        self.edges = np.ones((n, k))
+        self.trust = np.ones((n, k))
+        self.agree = np.full((n, k), np.nan)
+        self.centroid = np.full((n, k, 2), np.nan)
+        self.thin = np.zeros((n, k))
+
+    def add(self, res, prop: Propagator, key_refs: dict[int, H.KeyRef]) -> None:
+        pos = res.pos
+        if res.keyframe:
+            self.area[pos], self.centroid[pos], self.thin[pos] = key_refs[pos].area, key_refs[pos].centroid, \
+                key_refs[pos].thin
+            return
+        labels = _argmax_labels(res.soft)
+        near = min(key_refs, key=lambda k: abs(k - pos))
+        around = [k for k in key_refs if k < pos][-1:] + [k for k in key_refs if k > pos][:1]  # keys are sorted
+        cue, self.centroid[pos] = H.frame_cues(labels, prop.cache.work(pos), key_refs[near],
+                                               [key_refs[k] for k in around])
+        self.area[pos], self.appearance[pos], self.edges[pos] = cue[:, 0], cue[:, 1], cue[:, 2]
+        self.thin[pos] = key_refs[near].thin
+        for k in range(cue.shape[0]):
+            m = labels == k + 1
+            self.trust[pos, k] = float(res.trust[m].mean()) if m.any() else float(res.trust.mean())
+            if res.fwd is not None and res.bwd is not None:
+                f, b = res.fwd == k + 1, res.bwd == k + 1
+                u = int((f | b).sum())
+                self.agree[pos, k] = (f & b).sum() / u if u else 1.0
+
+
+def _stretch_text(fids: list[str], runs: list[tuple[int, int]]) -> str:
+    """[(first, last)] positions -> '16-24, 30' in frame numbers ('' when none)."""
+    return _ranges([fids[i] for a, b in runs for i in range(a, b + 1)]) if runs else ""
+
+
+def _work_labels(index_map: np.ndarray, wsize: tuple[int, int]) -> np.ndarray:
+    if (index_map.shape[1], index_map.shape[0]) == wsize:
+        return index_map
+    return cv2.resize(index_map, wsize, interpolation=cv2.INTER_NEAREST)
+
+
+def _expected(ref: dict[int, np.ndarray], n: int) -> np.ndarray:
+    """(n, K): every keyframe around the frame (the one before and the one after) shows the object."""
+    keys = sorted(ref)
+    out = np.zeros((n, len(ref[keys[0]])), bool)
+    for i in range(n):
+        around = [k for k in keys if k <= i][-1:] + [k for k in keys if k >= i][:1]
+        out[i] = np.all([ref[k] > 0 for k in around], axis=0)
+    return out
+
+
+def _refuse_duplicate_names(where: Path, names: list[str]) -> None:
+    """Two objects with one name cannot be told apart by labels, prompts or motions."""
+    dups = sorted({n for n in names if names.count(n) > 1})
+    if dups:
+        raise InputError(f"{where}: object name(s) {dups} are used for more than one object; give every object its "
+                         "own name (mapping.yaml) and run `interreal masks` again")
 
 
 def _ref_area(ref: dict[int, np.ndarray], pos: int) -> np.ndarray:

@@ -207,6 +207,9 @@ def main(args: argparse.Namespace) -> int:
         raise InputError(f"--mask-threshold {args.mask_threshold} must be in (0, 1)")
     if not args.run.is_dir():
         raise InputError(f"{args.run} is not a run folder: train one with `livescene train DS --out RUN`")
+    from livescene.data import require_valid_run_dataset
+
+    require_valid_run_dataset(args.run, "ground")  # an invalid dataset is refused, as by train/render/eval
     try:
         cmd: Command | None = parse_command(query)
     except InputError:

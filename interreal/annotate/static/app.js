@@ -93,6 +93,7 @@ function applyState(st) {
   S.objects = st.objects;
   S.labels = st.labels;
   S.labelsVersion = st.labels_version;
+  setBadLabels(st.bad_labels);
   S.mappingVersion = st.mapping_version;
   S.keyframes = st.keyframes;
   S.kfStamps = st.keyframe_stamps || {};
@@ -394,6 +395,22 @@ function selectObject(i) {
 }
 
 // ------------------------------------------------------------------------------------------------ objects + states
+// Entries of key_frame_value.yaml that are not a state in [0, 1] (typed by hand): shown with "!" in the states
+// table; setting the state of that object on that frame (or clearing it) replaces the entry.
+function setBadLabels(bad) {
+  const before = (S.badLabels || []).map((b) => b.problem).join("\n");
+  S.badLabels = bad || [];
+  const now = S.badLabels.map((b) => b.problem).join("\n");
+  if (now && now !== before) {
+    toast(`${S.badLabels.length} unreadable state(s) in key_frame_value.yaml (marked ! in the states table): `
+      + S.badLabels[0].problem);
+  }
+}
+
+function badLabelOf(key, name) {
+  return (S.badLabels || []).find((b) => b.frame === key && (b.object === name || b.object === ""));
+}
+
 function labelOf(key, name) {
   const e = S.labels[key];
   return e && Object.prototype.hasOwnProperty.call(e, name) ? e[name] : null;
@@ -406,6 +423,7 @@ async function setState(name, value) {
       version: S.labelsVersion, edits: [{ frame: f.key, object: name, value, base: labelOf(f.key, name) }],
     });
     S.labels = r.labels; S.labelsVersion = r.version;
+    setBadLabels(r.bad_labels);
     return r;
   });
   if (res && res.merged) toast("Merged with changes made in another tab.", "info");
@@ -520,7 +538,7 @@ function renderLists() {
   for (const fid of S.keyframes) kl.appendChild(li("frame " + fid, S.labelme.includes(fid) ? "LabelMe, read-only" : "", fid));
   const t = $("labels"); t.innerHTML = "";
   const names = S.objects.map((o) => o.name);
-  const keys = Object.keys(S.labels).sort();
+  const keys = [...new Set([...Object.keys(S.labels), ...(S.badLabels || []).map((b) => b.frame)])].sort();
   let n = 0;
   const head = document.createElement("thead");
   head.innerHTML = "<tr><th>frame</th></tr>";
@@ -535,7 +553,9 @@ function renderLists() {
     for (const nm of names) {
       const c = document.createElement("td");
       const v = labelOf(k, nm);
-      c.textContent = v === null ? "·" : v.toFixed(2);
+      const bad = v === null ? badLabelOf(k, nm) : null;
+      c.textContent = bad ? "!" : v === null ? "·" : v.toFixed(2);
+      if (bad) { c.className = "bad"; c.title = bad.value + ": " + bad.problem; }
       if (v !== null) n++;
       tr.appendChild(c);
     }

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 from .field import LiveSceneModel
 
-GRID_VERSION = 1
+GRID_VERSION = 2  # 2: with `reach`
 MAX_RES = 128  # cells along the box's longest axis at most; at least MIN_RES, else the field's finest plane
 MIN_RES = 16  # resolution. Cells are near cubes (a thin box gets fewer cells across): one size for every axis
 SWEEP_SHARE = 2  # objects moved along the k axis alone are swept on a lattice this many times coarser first
@@ -48,6 +48,9 @@ class OccupancyGrid:
     hi: torch.Tensor
     step: int
     info: dict[str, Any] = field(default_factory=dict)
+    # (X, Y, Z) bool: cells a rigid part's hull reaches at some state, dilated a cell. A ray none of whose samples
+    # falls in one renders the same at every state when every object moves rigidly (`render_view`'s state cache)
+    reach: torch.Tensor | None = None
     _masks: dict[float, torch.Tensor] = field(default_factory=dict, repr=False)
 
     @property
@@ -68,9 +71,10 @@ class OccupancyGrid:
     def occupied_fraction(self, threshold: float | None = None) -> float:
         return float(self.mask(threshold).float().mean())
 
-    def tester(self, threshold: float | None = None) -> Callable[[torch.Tensor], torch.Tensor]:
-        """points (P, 3) world -> bool (P,): inside an occupied cell."""
-        mask = self.mask(threshold)
+    def tester(self, threshold: float | None = None, reach: bool = False) -> Callable[[torch.Tensor], torch.Tensor]:
+        """points (P, 3) world -> bool (P,): in an occupied cell (`reach`: a cell a rigid part can reach), or
+        outside the box (the fields read such a point at the box's border: never skipped)."""
+        mask = self.reach.reshape(-1) if reach else self.mask(threshold)
         dims = torch.tensor(self.shape, device=self.lo.device)
         scale = dims / (self.hi - self.lo)
         stride = torch.tensor([self.shape[1] * self.shape[2], self.shape[2], 1], device=self.lo.device)
@@ -79,27 +83,30 @@ class OccupancyGrid:
             cell = ((pts - self.lo) * scale).floor().long()
             inside = ((cell >= 0) & (cell < dims)).all(-1)
             cell = torch.minimum(cell.clamp(min=0), dims - 1)
-            return mask[(cell * stride).sum(-1)] & inside
+            return mask[(cell * stride).sum(-1)] | ~inside  # outside the box (a ray that misses it): always read
 
         return occupied
 
     def to(self, device: torch.device | str) -> OccupancyGrid:
         if _same_device(self.density.device, torch.device(device)):
             return self
-        return OccupancyGrid(self.density.to(device), self.lo.to(device), self.hi.to(device), self.step, self.info)
+        return OccupancyGrid(self.density.to(device), self.lo.to(device), self.hi.to(device), self.step, self.info,
+                             None if self.reach is None else self.reach.to(device))
 
     def state(self) -> dict[str, Any]:
         """What the checkpoint stores (CPU tensors, float16 densities)."""
         return {"version": GRID_VERSION, "step": self.step, "density": self.density.detach().cpu(),
-                "lo": self.lo.detach().cpu(), "hi": self.hi.detach().cpu(), "info": dict(self.info)}
+                "lo": self.lo.detach().cpu(), "hi": self.hi.detach().cpu(), "info": dict(self.info),
+                "reach": None if self.reach is None else self.reach.detach().cpu()}
 
     @classmethod
     def from_state(cls, state: dict[str, Any], device: torch.device | str = "cpu") -> OccupancyGrid | None:
         """None for a grid of another version (rebuilt on use)."""
         if not state or state.get("version") != GRID_VERSION:
             return None
+        reach = state.get("reach")
         return cls(state["density"].to(device), state["lo"].to(device), state["hi"].to(device), int(state["step"]),
-                   dict(state.get("info", {})))
+                   dict(state.get("info", {})), None if reach is None else reach.to(device))
 
 
 def _same_device(a: torch.device, b: torch.device) -> bool:
@@ -196,8 +203,8 @@ def _sweep_steps(model: LiveSceneModel, obj: int, lo: torch.Tensor, hi: torch.Te
     return int(min(MAX_SWEEP_STEPS, max(2, math.ceil(travel / cell) + 1)))
 
 
-def _sweep_part(grid: torch.Tensor, model: LiveSceneModel, obj: int, part: tuple[torch.Tensor, ...],
-                box: tuple[torch.Tensor, torch.Tensor], floor: float) -> int:
+def _sweep_part(grid: torch.Tensor, reach: torch.Tensor, model: LiveSceneModel, obj: int,
+                part: tuple[torch.Tensor, ...], box: tuple[torch.Tensor, torch.Tensor], floor: float) -> int:
     """Carry a rigid part's rest-frame density through its motion into the world grid (in place): points spread
     at most a world cell apart over every rest cell denser than `floor` are moved to each swept state (at most a
     cell apart too), and the world cell a point lands in takes its density if larger. Returns the states swept."""
@@ -209,7 +216,7 @@ def _sweep_part(grid: torch.Tensor, model: LiveSceneModel, obj: int, part: tuple
     cell = (bhi - blo) / torch.tensor(shape, device=blo.device)
     steps = _sweep_steps(model, obj, plo, phi, float(cell.min()))
     h = dens.shape
-    at = (dens.reshape(-1) >= floor).nonzero()[:, 0]
+    at = (dens.reshape(-1) > 0).nonzero()[:, 0]  # the hull (a density > 0 inside it): `reach`
     if not len(at):
         return steps
     rest_cell = (phi - plo) / torch.tensor(h, device=blo.device)
@@ -219,14 +226,18 @@ def _sweep_part(grid: torch.Tensor, model: LiveSceneModel, obj: int, part: tuple
     idx = torch.stack([at // (h[1] * h[2]), (at // h[2]) % h[1], at % h[2]], -1)
     pts = (plo + (idx[:, None, :] + offs[None]) * rest_cell).reshape(-1, 3)
     val = dens.reshape(-1)[at].repeat_interleave(offs.shape[0])
-    flat = grid.view(-1)
+    dense = val >= floor
+    flat, reached = grid.view(-1), reach.view(-1)
     dims = torch.tensor(shape, device=blo.device)
     stride = torch.tensor([shape[1] * shape[2], shape[2], 1], device=blo.device)
     for s in torch.linspace(0, 1, steps, device=blo.device):
         rt, off = rest_transform(model, obj, s)
         c = (((pts - off) @ rt.T - blo) / cell).floor().long()  # rest = world @ rt + off, rt a rotation
         ok = ((c >= 0) & (c < dims)).all(-1)
-        flat.scatter_reduce_(0, (c[ok] * stride).sum(-1), val[ok], reduce="amax")
+        idx = (c * stride).sum(-1)
+        reached[idx[ok]] = True
+        ok &= dense
+        flat.scatter_reduce_(0, idx[ok], val[ok], reduce="amax")
     return steps
 
 
@@ -269,14 +280,16 @@ def build_grid(model: LiveSceneModel, box: tuple[torch.Tensor, torch.Tensor], st
     if free:  # objects moved along the k axis alone: any state, in the world frame
         grid = torch.maximum(grid, _max_over_k(dens, lo, hi, shape, k_nodes, floor))
     swept = {}
+    reach = torch.zeros(shape, dtype=torch.bool, device=lo.device)
     for o in rigid:
         ks = [0.0] if model.cfg.part_k == "rest" else k_nodes
         part = _part_density(dens, model, o, (lo, hi), shape, ks)
-        swept[o] = _sweep_part(grid, model, o, part, (lo, hi), floor)
+        swept[o] = _sweep_part(grid, reach, model, o, part, (lo, hi), floor)
     grid = _dilate(grid).clamp(max=FLOAT16_MAX).half()
     if was_training:
         model.train()
-    out = OccupancyGrid(grid, lo.clone(), hi.clone(), int(step))
+    out = OccupancyGrid(grid, lo.clone(), hi.clone(), int(step),
+                        reach=_dilate(reach.float()) > 0 if rigid else None)
     out.info = {"shape": list(shape), "field_reads": dens.reads, "swept_states": swept,
                 "k_nodes": len(k_nodes) if free else 0, "min_threshold": floor,
                 "build_s": round(time.perf_counter() - t0, 3), "occupied": round(out.occupied_fraction(), 4)}

@@ -154,22 +154,37 @@ def render_view(run, c2w_gl: np.ndarray, intrinsics: Intrinsics, states: StateSp
     rgb, depth, acc, probs = [], [], [], []
     o_all = torch.from_numpy(np.ascontiguousarray(origins)).to(run.device)
     d_all = torch.from_numpy(dirs).to(run.device)
-    stats = None
+    stats, reach, key, todo = None, None, None, None
     if fast:
         from .march import TERMINATE_T, FixedStates, MarchStats, march_rays
         from .occupancy import grid_for
 
         grid = grid_for(run) if occupancy is None else (occupancy or None)
-        tester = grid.to(run.device).tester(threshold) if grid is not None else None
+        grid = grid.to(run.device) if grid is not None else None
+        tester = grid.tester(threshold) if grid is not None else None
         fixed = FixedStates(model, values[0])
         stats = MarchStats()
+        if (grid is not None and grid.reach is not None and fixed.gate_decides
+                and getattr(run, "checkpoint", None) is not None):
+            # every object moves rigidly: rays that meet no cell a part can reach look the same at any state, so
+            # the same camera at other states re-renders only the others (a slider moved in a viewer)
+            reach = grid.tester(reach=True)
+            key = (np.asarray(c2w_gl, dtype=np.float64).tobytes(), repr(intrinsics), threshold, terminate, id(grid))
+            last = getattr(run, "_state_cache", None)
+            if last is not None and last["key"] == key:
+                todo = last["affected"].nonzero()[:, 0].to(run.device)
     chunk = chunk or (FAST_CHUNK.get(run.device.type, EXACT_CHUNK) if fast else EXACT_CHUNK)
+    if todo is not None:
+        o_all, d_all = o_all[todo], d_all[todo]
+    affected = []
     for s in range(0, o_all.shape[0], chunk):
         o, d = o_all[s: s + chunk], d_all[s: s + chunk]
         if fast:
             out = march_rays(model, fixed, o, d, run.box, run.config.sampler, tester, True, stats,
-                             terminate or TERMINATE_T)
+                             terminate or TERMINATE_T, reach)
             c, dep, a, logits = out["rgb"], out["depth"], out["acc"], out["logits"]
+            if reach is not None:
+                affected.append(out["affected"].cpu())
         else:
             out = render_rays(model, o, d, values.expand(o.shape[0], -1), run.box, run.config.sampler, gen=None,
                               with_logits=True)
@@ -182,12 +197,22 @@ def render_view(run, c2w_gl: np.ndarray, intrinsics: Intrinsics, states: StateSp
     if was_training:
         model.train()
     h, w = intrinsics.h, intrinsics.w
-    return {"rgb": torch.cat(rgb).view(h, w, 3).numpy(),
-            "depth": (torch.cat(depth).numpy() * z_scale).reshape(h, w).astype(np.float32),
-            "acc": torch.cat(acc).view(h, w).numpy(),
-            "probs": torch.cat(probs).view(h, w, m + 1).numpy(),
+    cat = (lambda parts, *shape: torch.cat(parts) if parts else torch.zeros(0, *shape))
+    res = {"rgb": cat(rgb, 3), "depth": cat(depth), "acc": cat(acc), "probs": cat(probs, m + 1)}
+    if todo is not None:  # the cached image with the rays that may have changed replaced
+        full = {k: v.clone() for k, v in last["out"].items()}
+        for k, v in res.items():
+            full[k][todo.cpu()] = v
+        res = full
+    elif key is not None:
+        run._state_cache = {"key": key, "affected": torch.cat(affected), "out": {k: v.clone() for k, v in res.items()}}
+    return {"rgb": res["rgb"].view(h, w, 3).numpy(),
+            "depth": (res["depth"].numpy() * z_scale).reshape(h, w).astype(np.float32),
+            "acc": res["acc"].view(h, w).numpy(),
+            "probs": res["probs"].view(h, w, m + 1).numpy(),
             "states": vals, "seconds": _time.perf_counter() - t_start, "rays": h * w, "fast": bool(fast),
-            "march": stats.as_dict() if stats is not None else None}
+            "march": stats.as_dict() if stats is not None else None,
+            "rays_reused": 0 if todo is None else h * w - len(todo)}
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -1,6 +1,7 @@
 """The annotation app's HTTP server (FastAPI on uvicorn), bound to 127.0.0.1 by default.
 
-Security model: the app can write the dataset, so a web page open in the same browser must not reach it.
+Security model: the app can write the dataset, so a web page open in the same browser must not reach it. The
+rules below are enforced by `interreal.localserver.LocalGuard`, shared with `livescene view`:
 - Every request carries the per-run token (`?token=` on the page URL, then a cookie named per port for images
   and the `X-Interreal-Token` header, which writes require: a cross-site page can send neither).
 - The Host header must name this server (127.0.0.1 / localhost / [::1] and the port): defeats DNS rebinding.
@@ -22,32 +23,24 @@ from __future__ import annotations
 
 import base64
 import inspect
-import ipaddress
 import json
-import logging
 import math
-import secrets
-import socket
 import threading
 import time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
-from urllib.parse import unquote
 
 from ..errors import InputError, InterRealError, MissingExtraError
+from ..localserver import LocalGuard, LocalServer, MiB, allowed_hosts
+from ..localserver import machine_addresses  # noqa: F401  (the addresses a wildcard bind is reached by)
 from .store import Conflict, DatasetStore, Outside, UnknownFrame, encode_index_png
-
-log = logging.getLogger("interreal.annotate")
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 STATIC_FILES = {"app.js": "text/javascript; charset=utf-8", "app.css": "text/css; charset=utf-8"}
 TOKEN_HEADER = "x-interreal-token"
-LOCAL_NAMES = ("127.0.0.1", "localhost", "[::1]")
-WILDCARD_HOSTS = ("0.0.0.0", "::", "")
 DEFAULT_MAX_REQUEST_MB = 4.0
-MiB = 1 << 20
 
 
 def _require_web() -> None:
@@ -178,201 +171,6 @@ def _summarise(out: Any) -> dict[str, Any]:
 # --------------------------------------------------------------------------------------------------------------------
 # The app
 # --------------------------------------------------------------------------------------------------------------------
-class Guard:
-    """ASGI middleware, before any route runs: `..` -> 404, foreign Host / Origin -> 403, missing or wrong token
-    -> 403, body over `max_body` bytes -> 413 (never buffered past the limit); and the last line of defence: an
-    exception escaping the app is logged here and answered 500 without a traceback."""
-
-    def __init__(self, app, token: str, hosts: set[str], cookie: str, max_body: int = int(DEFAULT_MAX_REQUEST_MB * MiB)):
-        self.app, self.token, self.hosts, self.cookie, self.max_body = app, token, hosts, cookie, max_body
-
-    async def __call__(self, scope, receive, send):
-        if scope["type"] != "http":
-            return await self._checked(scope, receive, send)
-        started = False
-
-        async def tracking_send(msg):
-            nonlocal started
-            if msg["type"] == "http.response.start":
-                started = True
-            await send(msg)
-
-        try:
-            return await self._checked(scope, receive, tracking_send)
-        except Exception:  # a server bug: the client gets a line, the terminal the traceback
-            log.error("annotate: unexpected error on %s %s\n%s", scope.get("method"), scope.get("path"),
-                      traceback.format_exc())
-            if not started:
-                await _plain(send, 500, "internal error in the annotation server (details on its terminal); "
-                                        "please report it", close=True)
-
-    async def _checked(self, scope, receive, send):
-        if scope["type"] == "lifespan":
-            return await self.app(scope, receive, send)
-        if scope["type"] != "http":
-            return await _plain(send, 403, "forbidden")
-        raw = scope.get("raw_path") or scope.get("path", "").encode()
-        raw_text = raw.decode("latin-1")
-        if ".." in scope.get("path", "") or ".." in unquote(unquote(raw_text)):
-            return await _plain(send, 404, "not found")
-        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
-        if headers.get("host", "").lower() not in self.hosts:
-            return await _plain(send, 403, "forbidden: this server answers only to " + ", ".join(sorted(self.hosts)))
-        origin = headers.get("origin")
-        if origin and origin.lower().split("://", 1)[-1] not in self.hosts:
-            return await _plain(send, 403, "forbidden: cross-origin request")
-        if not self._token_ok(scope, headers):
-            return await _plain(send, 403, "forbidden: open the URL with the token that `interreal annotate` printed")
-        limit = f"{self.max_body / MiB:g} MiB"
-        length = headers.get("content-length")
-        if length is not None:
-            if not (length.isascii() and length.strip().isdigit()):
-                return await _plain(send, 400, f"bad Content-Length {length[:40]!r}", close=True)
-            size = int(length.strip()) if len(length.strip()) <= 15 else 10 ** 15  # (int() refuses 5000 digits)
-            if size > self.max_body:
-                return await _plain(send, 413, f"request body of {size / MiB:.1f} MiB is over the limit of "
-                                               f"{limit} (interreal annotate --max-request-mb)", close=True)
-        body = await _read_body(receive, self.max_body)
-        if body is None:
-            return await _plain(send, 413, f"request body is over the limit of {limit} "
-                                           f"(interreal annotate --max-request-mb)", close=True)
-        return await self.app(scope, _replay(body, receive), send)
-
-    def _token_ok(self, scope, headers: dict[str, str]) -> bool:
-        given = headers.get(TOKEN_HEADER)
-        if scope.get("method", "GET") not in ("GET", "HEAD"):
-            return given is not None and secrets.compare_digest(given.encode(), self.token.encode())
-        if given is None:
-            from urllib.parse import parse_qs
-
-            q = parse_qs(scope.get("query_string", b"").decode("latin-1")).get("token")
-            given = q[0] if q else None
-        if given is None:
-            for part in headers.get("cookie", "").split(";"):
-                name, _, value = part.strip().partition("=")
-                if name == self.cookie:
-                    given = value
-        return given is not None and secrets.compare_digest(given.encode(), self.token.encode())
-
-
-async def _read_body(receive, limit: int) -> bytes | None:
-    """The whole request body, or None as soon as more than `limit` bytes arrived (the rest is never read)."""
-    chunks, size = [], 0
-    while True:
-        msg = await receive()
-        if msg["type"] != "http.request":  # http.disconnect: the client has gone
-            break
-        chunk = msg.get("body", b"")
-        size += len(chunk)
-        if size > limit:
-            return None
-        chunks.append(chunk)
-        if not msg.get("more_body", False):
-            break
-    return b"".join(chunks)
-
-
-def _replay(body: bytes, receive):
-    """An ASGI receive that gives the app the body read already, then waits on the real one (for disconnects)."""
-    sent = False
-
-    async def replay():
-        nonlocal sent
-        if not sent:
-            sent = True
-            return {"type": "http.request", "body": body, "more_body": False}
-        return await receive()
-
-    return replay
-
-
-async def _plain(send, status: int, text: str, close: bool = False) -> None:
-    body = text.encode()
-    headers = [(b"content-type", b"text/plain; charset=utf-8"), (b"content-length", str(len(body)).encode()),
-               (b"cache-control", b"no-store")]
-    if close:  # the body was not (all) read: the connection cannot carry another request
-        headers.append((b"connection", b"close"))
-    await send({"type": "http.response.start", "status": status, "headers": headers})
-    await send({"type": "http.response.body", "body": body})
-
-
-def machine_addresses(host: str) -> list[str]:
-    """The names and addresses other machines may use to reach a server bound to a wildcard `host`.
-
-    The host name, its fully qualified name, what they resolve to, every interface address (Linux), and the
-    address of the default route. IPv4 only for 0.0.0.0; both families for `::` (a dual-stack socket).
-    """
-    if host not in WILDCARD_HOSTS:
-        return []
-    names: set[str] = set()
-    for name in (socket.gethostname(), socket.getfqdn()):
-        if name:
-            names.add(name)
-            try:
-                names |= {info[4][0] for info in socket.getaddrinfo(name, None)}
-            except (OSError, UnicodeError):
-                pass
-    names |= _interface_addresses()
-    for family, target in ((socket.AF_INET, "192.0.2.1"), (socket.AF_INET6, "2001:db8::1")):
-        try:  # connect() on UDP sends nothing: it only picks the interface of the default route
-            with socket.socket(family, socket.SOCK_DGRAM) as s:
-                s.connect((target, 9))
-                names.add(s.getsockname()[0])
-        except OSError:
-            pass
-    out = []
-    for name in names:
-        name = name.split("%", 1)[0]
-        try:
-            ip = ipaddress.ip_address(name)
-        except ValueError:
-            if name.lower() != "localhost":
-                out.append(name.lower())
-            continue
-        if ip.is_loopback or ip.is_unspecified or ip.is_link_local or (ip.version == 6 and host == "0.0.0.0"):
-            continue
-        out.append(f"[{ip}]" if ip.version == 6 else str(ip))
-    return sorted(set(out))
-
-
-def _interface_addresses() -> set[str]:
-    """IPv4 addresses of every network interface (Linux ioctl) and IPv6 ones from /proc; empty elsewhere."""
-    out: set[str] = set()
-    try:
-        import fcntl
-        import struct
-
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            for _, name in socket.if_nameindex():
-                try:
-                    req = struct.pack("256s", name.encode()[:15])
-                    out.add(socket.inet_ntoa(fcntl.ioctl(s.fileno(), 0x8915, req)[20:24]))  # SIOCGIFADDR
-                except OSError:
-                    continue
-    except (ImportError, OSError, AttributeError):
-        pass
-    try:
-        for line in Path("/proc/net/if_inet6").read_text().splitlines():
-            raw = line.split()[0]
-            out.add(str(ipaddress.IPv6Address(bytes.fromhex(raw))))
-    except (OSError, ValueError, IndexError):
-        pass
-    return out
-
-
-def allowed_hosts(host: str, port: int) -> set[str]:
-    """Host header values this server answers to: loopback names, the bound address, and for a wildcard bind the
-    machine's own names and addresses (never an arbitrary name: that is what stops DNS rebinding)."""
-    names = set(LOCAL_NAMES)
-    if host not in WILDCARD_HOSTS:
-        names.add(f"[{host}]" if ":" in host else host)
-    names |= set(machine_addresses(host))
-    hosts = {f"{n}:{port}".lower() for n in names}
-    if port == 80:  # browsers leave the default port out of the Host header
-        hosts |= {n.lower() for n in names}
-    return hosts
-
-
 def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1",
                max_request_mb: float = DEFAULT_MAX_REQUEST_MB):
     """The ASGI app for one dataset, one token and the port it is served on."""
@@ -412,7 +210,7 @@ def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1",
         return JSONResponse({"error": f"malformed request: {exc.errors()[:3]}"}, status_code=400)
 
     @app.exception_handler(Exception)
-    async def _bug(req: Request, exc: Exception):  # ServerErrorMiddleware: Guard logs the traceback
+    async def _bug(req: Request, exc: Exception):  # ServerErrorMiddleware: LocalGuard logs the traceback
         return JSONResponse({"error": f"internal error in the annotation server ({type(exc).__name__}); the "
                                       f"details are on its terminal: please report it"}, status_code=500)
 
@@ -534,7 +332,8 @@ def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1",
     def propagate_status():
         return JSONResponse(prop.status(), headers=nocache)
 
-    return Guard(app, token, allowed_hosts(host, port), cookie, max_body=int(max_request_mb * MiB))
+    return LocalGuard(app, token, allowed_hosts(host, port), cookie, max_body=int(max_request_mb * MiB),
+                      token_header=TOKEN_HEADER, command="interreal annotate", limit_flag="--max-request-mb")
 
 
 # --------------------------------------------------------------------------------------------------------------------
@@ -661,52 +460,11 @@ def _html(text: str) -> str:
 # --------------------------------------------------------------------------------------------------------------------
 # Serving
 # --------------------------------------------------------------------------------------------------------------------
-class AnnotateServer:
-    """A bound socket + uvicorn server; `serve_forever()` in the foreground or `start()` in a thread (tests)."""
+class AnnotateServer(LocalServer):
+    """The annotation app on a bound socket; `serve_forever()` in the foreground or `start()` in a thread (tests)."""
 
     def __init__(self, ds: str | Path, host: str = "127.0.0.1", port: int = 0, token: str | None = None,
                  max_request_mb: float = DEFAULT_MAX_REQUEST_MB):
         _require_web()
-        import uvicorn
-
-        self.token = token or secrets.token_urlsafe(24)
-        family = socket.AF_INET6 if ":" in host else socket.AF_INET
-        self.sock = socket.socket(family, socket.SOCK_STREAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self.sock.bind((host, port))
-        self.host, self.port = host, self.sock.getsockname()[1]
-        self.app = create_app(ds, self.token, self.port, host, max_request_mb=max_request_mb)
-        config = uvicorn.Config(self.app, log_level="warning", access_log=False, lifespan="off")
-        self.server = uvicorn.Server(config)
-        self._thread: threading.Thread | None = None
-
-    @property
-    def url(self) -> str:
-        shown = "127.0.0.1" if self.host in ("0.0.0.0", "") else (f"[{self.host}]" if ":" in self.host else self.host)
-        return f"http://{shown}:{self.port}/?token={self.token}"
-
-    @property
-    def remote_urls(self) -> list[str]:
-        """The page's URL as other machines may open it (wildcard binds only; IP addresses first)."""
-        names = machine_addresses(self.host)
-        names.sort(key=lambda n: (not (n[0].isdigit() or n.startswith("[")), n))
-        return [f"http://{n}:{self.port}/?token={self.token}" for n in names]
-
-    def serve_forever(self) -> None:
-        self.server.run(sockets=[self.sock])
-
-    def start(self, timeout: float = 20.0) -> "AnnotateServer":
-        self._thread = threading.Thread(target=self.serve_forever, name="annotate-server", daemon=True)
-        self._thread.start()
-        t0 = time.time()
-        while not self.server.started:
-            if time.time() - t0 > timeout or not self._thread.is_alive():
-                raise RuntimeError("the annotation server did not start")
-            time.sleep(0.05)
-        return self
-
-    def stop(self) -> None:
-        self.server.should_exit = True
-        if self._thread is not None:
-            self._thread.join(timeout=10)
-        self.sock.close()
+        super().__init__(lambda tok, p: create_app(ds, tok, p, host, max_request_mb=max_request_mb),
+                         host, port, token, name="annotation server")

@@ -1,8 +1,8 @@
 """`livescene view RUN`: look around a trained run in the browser, with a slider per object.
 
 - `session`: the run, views parsed from the page, one render at a time (stale requests dropped), save, sweep, command.
-- `guard`: the local-server rules (127.0.0.1, token, Host and Origin checks, request-size limit).
-- `server`: the FastAPI routes and the uvicorn server; the page is livescene/viewer_static/ (no build step, no CDN).
+- `server`: the FastAPI routes and the uvicorn server, behind `interreal.localserver`'s rules (127.0.0.1, token,
+  Host and Origin checks, request-size limit); the page is livescene/viewer_static/ (no build step, no CDN).
 """
 
 from __future__ import annotations

@@ -1,6 +1,8 @@
 """The viewer's HTTP server: FastAPI routes over a `ViewerSession`, behind `LocalGuard`, served by uvicorn.
 
-Routes (all need the token, see guard.py): GET / (the page), GET /static/NAME, GET /api/info,
+The local-server rules (token, Host / Origin checks, the body limit, a 500 without a traceback) are
+`interreal.localserver`'s, shared with `interreal annotate`.
+Routes (all need the token): GET / (the page), GET /static/NAME, GET /api/info,
 POST /api/render (a PNG; 204 when a newer request superseded it), POST /api/save, POST /api/sweep,
 GET /api/sweep (progress), POST /api/command. Bad input -> 400 with {"error": "..."}.
 
@@ -10,16 +12,12 @@ imported inside `create_app`, so they must be evaluated where the routes are def
 
 import html
 import json
-import secrets
-import socket
-import threading
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from interreal.errors import InterRealError, MissingExtraError
-
-from .guard import LocalGuard, allowed_hosts
+from interreal.localserver import LocalGuard, LocalServer, allowed_hosts
 
 if TYPE_CHECKING:
     from .session import ViewerSession
@@ -27,6 +25,8 @@ if TYPE_CHECKING:
 STATIC_DIR = Path(__file__).resolve().parent.parent / "viewer_static"
 STATIC_FILES = {"viewer.js": "text/javascript; charset=utf-8", "viewer.css": "text/css; charset=utf-8"}
 NO_STORE = {"Cache-Control": "no-store"}
+TOKEN_HEADER = "x-livescene-token"
+MAX_BODY = 64 * 1024  # a view, its states and a command are a few hundred bytes
 PAGE_HEADERS = {
     **NO_STORE, "X-Frame-Options": "DENY", "X-Content-Type-Options": "nosniff", "Referrer-Policy": "no-referrer",
     "Content-Security-Policy": "default-src 'self'; img-src 'self' blob: data:; script-src 'self'; style-src 'self'; "
@@ -125,49 +125,13 @@ def create_app(session: "ViewerSession", token: str, port: int, host: str = "127
         text = data.get("text") if isinstance(data, dict) else None
         return JSONResponse(await run_in_threadpool(session.command, text), headers=NO_STORE)
 
-    return LocalGuard(app, token, allowed_hosts(host, port), cookie)
+    return LocalGuard(app, token, allowed_hosts(host, port), cookie, max_body=MAX_BODY, token_header=TOKEN_HEADER,
+                      command="livescene view")
 
 
-class ViewerServer:
-    """A bound socket + uvicorn server; `serve_forever()` in the foreground or `start()` in a thread (tests)."""
+class ViewerServer(LocalServer):
+    """The viewer on a bound socket; `serve_forever()` in the foreground or `start()` in a thread (tests)."""
 
     def __init__(self, session: "ViewerSession", host: str = "127.0.0.1", port: int = 0, token: str | None = None):
         require_web()
-        import uvicorn
-
-        self.token = token or secrets.token_urlsafe(24)
-        family = socket.AF_INET6 if ":" in host else socket.AF_INET
-        self.sock = socket.socket(family, socket.SOCK_STREAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self.sock.bind((host, port))
-        self.host, self.port = host, self.sock.getsockname()[1]
-        self.app = create_app(session, self.token, self.port, host)
-        self.server = uvicorn.Server(uvicorn.Config(self.app, log_level="warning", access_log=False, lifespan="off"))
-        self._thread: threading.Thread | None = None
-
-    @property
-    def url(self) -> str:
-        if self.host in ("0.0.0.0", "::", ""):
-            shown = "127.0.0.1"
-        else:
-            shown = f"[{self.host}]" if ":" in self.host else self.host
-        return f"http://{shown}:{self.port}/?token={self.token}"
-
-    def serve_forever(self) -> None:
-        self.server.run(sockets=[self.sock])
-
-    def start(self, timeout: float = 20.0) -> "ViewerServer":
-        self._thread = threading.Thread(target=self.serve_forever, name="viewer-server", daemon=True)
-        self._thread.start()
-        t0 = time.time()
-        while not self.server.started:
-            if time.time() - t0 > timeout or not self._thread.is_alive():
-                raise RuntimeError("the viewer server did not start")
-            time.sleep(0.05)
-        return self
-
-    def stop(self) -> None:
-        self.server.should_exit = True
-        if self._thread is not None:
-            self._thread.join(timeout=10)
-        self.sock.close()
+        super().__init__(lambda tok, p: create_app(session, tok, p, host), host, port, token, name="viewer server")

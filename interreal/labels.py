@@ -25,10 +25,11 @@ from typing import Any, Iterable, Iterator
 import yaml
 
 from . import atomic, provenance
-from .conventions import IMAGES_DIR, LABELS_FILE, MAPPING_FILE, MASKS_DIR, frame_index
+from .conventions import ARTICULATION_FILE, IMAGES_DIR, LABELS_FILE, MAPPING_FILE, MASKS_DIR, frame_index
 from .dataset import label_value_problem, list_images, load_transforms, read_labels_raw, read_mapping, read_prompts
 from .dataset import npy_header, read_yaml, write_labels, write_mapping, write_prompts
 from .errors import DatasetError, InputError
+from .provenance import MOTION_INPUTS
 from .report import StageReport, read_report
 
 KEYFRAMES_DIR = "keyframes"  # where `interreal annotate` stores keyframe masks (the `--keyframes DIR` format)
@@ -246,7 +247,8 @@ def add_object(ds: str | Path, name: str, description: str | None = None) -> int
 
 
 def rename_object(ds: str | Path, old: str, new: str) -> None:
-    """Rename an object everywhere it is named: mapping.yaml, key_frame_value.yaml, keyframes/, prompts.yaml.
+    """Rename an object everywhere it is named: mapping.yaml, key_frame_value.yaml, keyframes/, prompts.yaml,
+    articulation.json (a measured motion keeps its part, so it is not made stale by the new name).
 
     Idempotent, so a rename cut short by a crash is finished by running it again.
     """
@@ -261,6 +263,7 @@ def rename_object(ds: str | Path, old: str, new: str) -> None:
             raise InputError(f"cannot rename {old!r} to {new!r}: an object called {new!r} exists already")
         require_object(mapping, old)
         masks_fresh = provenance.unchanged(ds, "masks", ["keyframes"])
+        motions_fresh = provenance.unchanged(ds, "motions", MOTION_INPUTS)
         kf = ds / KEYFRAMES_DIR
         if kf.is_dir():
             for js in sorted(kf.glob("*.json")):
@@ -277,6 +280,21 @@ def rename_object(ds: str | Path, old: str, new: str) -> None:
         if old in prompts:
             write_prompts(ds, {(new if k == old else k): v for k, v in prompts.items()})
         _write_objects(ds, {k: (new if v == old else v) for k, v in mapping.items()})
+        _rename_in_articulation(ds, old, new)
+        if motions_fresh:
+            provenance.refresh(ds, "motions", MOTION_INPUTS)
+
+
+def _rename_in_articulation(ds: Path, old: str, new: str) -> None:
+    path = ds / ARTICULATION_FILE
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return  # absent, or damaged: `validate` names a damaged file
+    objects = doc.get("objects") if isinstance(doc, dict) else None
+    if isinstance(objects, dict) and old in objects:
+        doc["objects"] = {(new if k == old else k): v for k, v in objects.items()}
+        atomic.write_json(path, doc)
 
 
 def _rename_in_labelme(path: Path, old: str, new: str) -> None:

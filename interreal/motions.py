@@ -389,7 +389,7 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
     if unknown:
         raise InputError(f"unknown motion options {sorted(unknown)}")
     cfg = MotionConfig(**{k: v for k, v in opts.items() if v is not None})
-    fps = provenance.fingerprints(ds_path, ["transforms", "labels", "masks", "mapping"])  # before anything is read
+    fps = provenance.fingerprints(ds_path, provenance.MOTION_INPUTS)  # before anything is read
     ds = load_dataset(ds_path)
     if not ds.n_objects:
         raise InputError(f"{ds_path} has no objects (mapping.yaml): nothing moves")

@@ -31,6 +31,7 @@ OUTPUTS: dict[str, tuple[str, ...]] = {
     "labels": ("labels", "mapping"),
     "motions": (),
 }
+MOTION_INPUTS = ("transforms", "labels", "masks", "mapping")  # what `interreal motions` reads
 WHAT = {  # "<stage> were computed from ..."
     "images": "other images", "masks": "other masks", "sfm_masks": "other masks", "transforms": "other poses",
     "labels": "other labels", "mapping": "another object list (mapping.yaml)", "keyframes": "other keyframes",

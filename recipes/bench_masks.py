@@ -284,8 +284,8 @@ def main() -> int:
                   note="every run is the whole `interreal masks` command (start-up, previews, writing) on a shared "
                        "2-core machine: times are pessimistic")
     scatter_chart(args.out / "masks.png", chart_points(runs, summary), "s_per_frame", "j_mean",
-                  label=lambda r: r["label"], logx=True,
-                  xlabel="seconds per frame, whole `interreal masks` command (log)",
+                  label=lambda r: r["label"],
+                  xlabel="seconds per frame, whole `interreal masks` command",
                   ylabel="J (mean over sequences)", title="interreal masks: accuracy vs time, every setting")
     print_table(runs, ["data", "setting", "variant", "keyframes", "j_mean", "predicted_j", "warned", "lost_warned",
                        "fps", "s_per_frame", "per_object"], title="masks")

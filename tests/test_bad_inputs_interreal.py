@@ -459,6 +459,19 @@ def test_rename_keeps_masks_fresh(tiny_dataset, capsys):
     assert [s.stage for s in P.stale_stages(tiny_dataset)] == ["masks"]
 
 
+def test_rename_carries_the_measured_motion_along(tiny_dataset, capsys):
+    atomic.write_json(tiny_dataset / "articulation.json", {"objects": {"door": {
+        "type": "hinge", "axis": [0, 0, 1], "origin": [0, 0, 0], "range": 1.0}}})
+    with StageReport(tiny_dataset, "motions", inputs={"fingerprints": P.fingerprints(tiny_dataset, P.MOTION_INPUTS)}):
+        pass
+    assert D.validate(tiny_dataset, check_masks=False).ok
+    assert run(["label", str(tiny_dataset), "--rename", "door", "front door"], capsys)[0] == 0
+    doc = json.loads((tiny_dataset / "articulation.json").read_text())
+    assert list(doc["objects"]) == ["front door"] and doc["objects"]["front door"]["type"] == "hinge"
+    result = D.validate(tiny_dataset, check_masks=False)
+    assert result.ok, D.format_problems(result)  # neither an unknown object nor stale motions
+
+
 # ------------------------------------------------------------------------------------------------ real pipeline
 @pytest.fixture(scope="module")
 def processed(tmp_path_factory):

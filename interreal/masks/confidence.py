@@ -1,54 +1,11 @@
-"""How sure propagation is, per object and frame, and where one more keyframe would help most.
+"""Where one more keyframe would help most, and how far each propagated stretch lies from its keyframes.
 
-Confidence multiplies four cues, each in [0, 1]:
-- agreement: IoU of the forward and backward chains' masks (one-sided frames: decays with the distance
-  to the only keyframe, since nothing checks them);
-- consistency: mean forward-backward flow trust on the object and its outline;
-- area: how far the area strays from the keyframes' areas (square-rooted: objects do change size);
-- margin: how decided the fused soft map is on the object (|p_object - p_best_other|).
+The per-frame confidence itself (a predicted J, with lost / jumped / drifting states) is `health`'s.
 """
 
 from __future__ import annotations
 
 import numpy as np
-
-ONE_SIDED_TAU = 40.0  # frames: one-sided confidence halves roughly every 28 frames
-
-
-def frame_confidence(soft: np.ndarray, fwd: np.ndarray | None, bwd: np.ndarray | None, trust: np.ndarray,
-                     dist: tuple[int | None, int | None], ref_area: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(confidence (K,), area fraction (K,)) for one propagated frame at work resolution."""
-    k = soft.shape[-1] - 1
-    labels = np.argmax(soft, -1)
-    conf = np.ones(k, np.float64)
-    area = np.zeros(k, np.float64)
-    npx = labels.size
-    for j in range(k):
-        m = labels == j
-        area[j] = m.sum() / npx
-        f = fwd == j + 1 if fwd is not None else None
-        b = bwd == j + 1 if bwd is not None else None
-        region = m.copy()
-        for x in (f, b):
-            if x is not None:
-                region |= x
-        if f is not None and b is not None:
-            u = (f | b).sum()
-            agree = (f & b).sum() / u if u else 1.0
-        else:
-            d = dist[0] if dist[0] is not None else dist[1]
-            agree = float(np.exp(-(d or 0) / ONE_SIDED_TAU))
-        if not region.any():
-            conf[j] = agree if ref_area[j] == 0 else agree * float(np.mean(trust))
-            continue
-        consistency = float(trust[region].mean())
-        p = soft[..., j][region]
-        other = np.delete(soft, j, axis=-1).max(-1)[region]
-        margin = float(np.clip(np.abs(p - other).mean(), 0, 1))
-        a, r = area[j], ref_area[j]
-        area_score = float(np.sqrt(min(a, r) / max(a, r))) if max(a, r) > 0 else 1.0
-        conf[j] = agree * consistency * area_score * margin
-    return conf, area
 
 
 def suggest_frames(conf: np.ndarray, keyframe: np.ndarray, n: int, tau: float | None = None) -> list[int]:

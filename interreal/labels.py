@@ -642,6 +642,13 @@ def _null() -> Iterator[None]:
 # ----------------------------------------------------------------------------------------------------------------
 # CLI: interreal label
 # ----------------------------------------------------------------------------------------------------------------
+def add_unit_arguments(p) -> None:
+    """--degrees / --cm: physical label values, shared by `label` and `process --labels` so they mean the same."""
+    p.add_argument("--degrees", metavar="LO:HI",
+                   help="values are angles; LO degrees = state 0, HI = state 1 (negative LO: --degrees=-10:80)")
+    p.add_argument("--cm", metavar="LO:HI", help="values are distances in cm; LO = state 0, HI = state 1")
+
+
 def add_arguments(p) -> None:
     p.add_argument("dataset", type=Path, help="dataset folder (frames in DS/images)")
     p.add_argument("--set", nargs=3, action="append", default=[], metavar=("OBJECT", "FRAME", "VALUE"),
@@ -658,9 +665,7 @@ def add_arguments(p) -> None:
                    help="rename an object in mapping.yaml, labels, keyframe annotations and prompts.yaml")
     p.add_argument("--list", action="store_true", help="print the labels as a table (the default with no edits)")
     p.add_argument("--json", action="store_true", help="with --list: print JSON rows instead of a table")
-    p.add_argument("--degrees", metavar="LO:HI",
-                   help="values are angles; LO degrees = state 0, HI = state 1 (negative LO: --degrees=-10:80)")
-    p.add_argument("--cm", metavar="LO:HI", help="values are distances in cm; LO = state 0, HI = state 1")
+    add_unit_arguments(p)
     p.add_argument("--replace", action="store_true", help="with --from: replace all labels instead of merging")
     p.add_argument("--add-objects", action="store_true",
                    help="with --from: add objects the file names that mapping.yaml does not have (without it they "

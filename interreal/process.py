@@ -83,10 +83,14 @@ def _stage_fn(module: str, name: str, flag: str) -> Callable[..., Any]:
 
 def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None = None,
             labels: str | Path | None = None, target: int | None = None, every: int | None = None,
-            long_side: int = 1600, motions: bool = True, **sfm: Any) -> dict[str, Any]:
-    """Run the stages in order; each writes its own reports/<stage>.json. Returns the pose figures.
-    With masks and labels, `motions` also measures each object's rigid motion (`interreal motions`)."""
+            long_side: int = 1600, motions: bool = True, degrees: Any = None, cm: Any = None,
+            **sfm: Any) -> dict[str, Any]:
+    """Run the stages in order; each writes its own reports/<stage>.json, and reports/process.json collects their
+    warnings. Returns the pose figures. With masks and labels, `motions` also measures each object's rigid motion
+    (`interreal motions`). degrees / cm: physical label values, as `interreal label --degrees / --cm`."""
     ds = Path(ds)
+    if (degrees is not None or cm is not None) and labels is None:
+        raise InputError("--degrees / --cm give the range of --labels values: add --labels FILE, or drop them")
     keep: set[int] = set()
     if keyframes is not None:
         keep |= set(keyframe_indices(Path(keyframes)))
@@ -95,13 +99,19 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
     # resolve optional stages before any work, so a missing module fails in a second, not after SfM
     propagate = _stage_fn("interreal.masks", "propagate", "--keyframes") if keyframes is not None else None
     import_labels = _stage_fn("interreal.labels", "import_labels", "--labels") if labels is not None else None
+    if import_labels is not None and (degrees is not None or cm is not None):
+        from .labels import parse_range
+
+        parse_range(degrees, "degrees"), parse_range(cm, "cm")  # a malformed range fails now, not after SfM
     settings = {"keyframes": str(keyframes) if keyframes else None, "labels": str(labels) if labels else None,
-                "target": target, "every": every, "long_side": long_side, "motions": motions, **sfm}
+                "target": target, "every": every, "long_side": long_side, "motions": motions,
+                "degrees": degrees, "cm": cm, **sfm}
     ds.mkdir(parents=True, exist_ok=True)
     with StageReport(ds, "process", inputs={"source": str(source)}, settings=settings) as rep:
         with rep.step("frames") as st:
             paths = extract_frames(source, ds, target=target, every=every, long_side=long_side, keep=sorted(keep))
             st["frames"] = len(paths)
+        _collect_warnings(rep, ds, "frames")
         # a stage not asked for but already in the dataset runs again when its inputs changed (new frames, ...)
         kf_dir = Path(keyframes) if keyframes is not None else _stale_keyframes(ds)
         if kf_dir is not None:
@@ -109,26 +119,66 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
             with rep.step("masks") as st:
                 st["keyframes"] = str(kf_dir)
                 propagate(ds, kf_dir)
+            _collect_warnings(rep, ds, "masks")
         with rep.step("poses"):
             fig = estimate_poses(ds, **sfm)
+        _collect_warnings(rep, ds, "poses")
         if import_labels is not None:
             # labels of another capture (the frames now come from another video) are replaced, not merged
             replace = any(s.stage == "labels" and "capture" in s.reasons for s in provenance.stale_stages(ds))
             with rep.step("labels") as st:
                 st["replace"] = replace
-                import_labels(ds, Path(labels), **({"replace": True} if replace else {}))
+                units = {k: v for k, v in (("degrees", degrees), ("cm", cm)) if v is not None}
+                import_labels(ds, Path(labels), **units, **({"replace": True} if replace else {}))
+            _collect_warnings(rep, ds, "labels")
         had_motions = read_report(ds, "motions") is not None
         if motions and ((kf_dir is not None and import_labels is not None) or had_motions):
             from .motions import estimate_motions
 
             with rep.step("motions") as st:
                 st.update(estimate_motions(ds))
+            _collect_warnings(rep, ds, "motions")
         left = [s.message for s in provenance.stale_stages(ds)]
         for message in left:
             rep.warn(message, cause="stale")
         rep.figures.update({"frames": len(paths), "registered": fig.get("registered"), "total": fig.get("total"),
                             "stale": left})
     return {**fig, "stale": left}
+
+
+def _collect_warnings(rep: StageReport, ds: Path, stage: str) -> None:
+    """Copy a stage's warnings into the process report (tagged with the stage), so reports/process.json says
+    everything the run noticed, not only its own bookkeeping."""
+    for w in (read_report(ds, stage) or {}).get("warnings", []):
+        entry = dict(w) if isinstance(w, dict) else {"message": str(w)}
+        rep.warn(str(entry.pop("message", "")), cause=entry.pop("cause", None), **{**entry, "stage": stage})
+
+
+def stage_summary(ds: Path, stage: str) -> str | None:
+    """One line of what a stage made, from its report's figures (None when it has no report)."""
+    r = read_report(ds, stage)
+    if r is None:
+        return None
+    f = r.get("figures", {})
+    if stage == "frames":
+        return (f"frames: {f.get('selected', '?')} selected of {f.get('source_frames', '?')} source frames"
+                + (f", {len(f['unusable_indices'])} unusable" if f.get("unusable_indices") else "")
+                + (f", size {f['size'][0]}x{f['size'][1]}" if len(f.get("size") or ()) == 2 else ""))
+    if stage == "masks":
+        mean = f.get("confidence_mean") or {}
+        return (f"masks: {f.get('frames', '?')} frames from {len(f.get('keyframes') or [])} keyframes"
+                + ("; predicted J " + ", ".join(f"{n} {v:.2f}" for n, v in mean.items()) if mean else "")
+                + (f"; suggested keyframes {', '.join(map(str, f['suggested_frames'][:5]))}"
+                   if f.get("suggested_frames") else ""))
+    if stage == "labels":
+        return (f"labels: {f.get('imported', '?')} imported, {f.get('labels', '?')} in the dataset"
+                + (f" for {', '.join(f['objects'])}" if f.get("objects") else "")
+                + (f", {len(f['skipped_frames'])} rows skipped" if f.get("skipped_frames") else ""))
+    if stage == "motions":
+        objs = f.get("objects") or {}
+        return (f"motions: {f.get('measured', 0)} of {f.get('total', '?')} objects measured"
+                + (": " + ", ".join(f"{n} ({k})" for n, k in objs.items()) if objs else ""))
+    return None
 
 
 def _stale_keyframes(ds: Path) -> Path | None:
@@ -147,6 +197,8 @@ def _stale_keyframes(ds: Path) -> Path | None:
 
 
 def add_arguments(p) -> None:
+    from .labels import add_unit_arguments
+
     p.add_argument("input", type=Path, help="video file, image folder or RAW folder")
     p.add_argument("dataset", type=Path, help="dataset folder to create / update")
     p.add_argument("--keyframes", type=Path, help="keyframe masks folder (00042.png index masks or LabelMe .json)")
@@ -157,6 +209,7 @@ def add_arguments(p) -> None:
     p.add_argument("--long-side", type=int, default=1600, help="long side of the training images (default 1600)")
     p.add_argument("--no-motions", dest="motions", action="store_false",
                    help="with --keyframes and --labels: skip measuring each object's rigid motion")
+    add_unit_arguments(p)
     add_sfm_options(p)
     p.epilog = ("examples:\n  interreal process room.mp4 out/room\n"
                 "  interreal process cap/video.mp4 out/ds --keyframes cap/annotations/keyframes \\\n"
@@ -167,10 +220,16 @@ def add_arguments(p) -> None:
 def main(args) -> int:
     t0 = time.perf_counter()
     fig = process(args.input, args.dataset, keyframes=args.keyframes, labels=args.labels, target=args.target,
-                  every=args.every, long_side=args.long_side, motions=args.motions, **sfm_options(args))
-    print("\n".join(warning_lines(args.dataset, ["frames", "masks"] if args.keyframes else ["frames"])
-                    + summary_lines(fig, args.dataset)
-                    + (warning_lines(args.dataset, ["labels", "motions"]) if args.labels else [])
-                    + [f"  warning: {m}" for m in fig.get("stale", [])]))
+                  every=args.every, long_side=args.long_side, motions=args.motions, degrees=args.degrees,
+                  cm=args.cm, **sfm_options(args))
+    ran = list((read_report(args.dataset, "process") or {}).get("steps", {}))
+    lines: list[str] = []
+    for stage in ran:  # each stage that ran: what it made, then its warnings
+        if stage == "poses":
+            lines += summary_lines(fig, args.dataset)
+            continue
+        line = stage_summary(args.dataset, stage)
+        lines += ([line] if line else []) + warning_lines(args.dataset, [stage])
+    print("\n".join(lines + [f"  warning: {m}" for m in fig.get("stale", [])]))
     print(f"process: done in {time.perf_counter() - t0:.1f} s -> {args.dataset}")
     return 0

@@ -76,6 +76,58 @@ def other_processes_cores(window: float = 0.5) -> float | None:
         return None
 
 
+class ThreadTrial:
+    """Measure, not guess, the thread count: the first training steps run in alternating blocks at `many` threads
+    and at 1 (real steps, none wasted), and the faster per-step median is kept. A busy shared machine can make many
+    threads several times slower than one (1.3-1.9 vs 8.4 steps/s on a loaded 2-core box), and no reading of the
+    load beforehand tells reliably; a few seconds of timing does.
+
+    Use: `threads = trial.before_step()` before each step, `trial.after_step(seconds)` after it, until `done`."""
+
+    def __init__(self, many: int, block: int = 3, blocks: int = 4, warmup: int = 2, max_s: float = 6.0):
+        self.many, self.warmup, self.max_s = many, warmup, max_s
+        self.plan = [many] * warmup + [n for b in range(blocks) for n in ([many, 1][b % 2],) * block]
+        self.times: dict[int, list[float]] = {many: [], 1: []}
+        self.spent = 0.0
+        self.chosen: int | None = None if many > 1 else many
+        self.medians: dict[int, float] = {}
+
+    @property
+    def done(self) -> bool:
+        return self.chosen is not None
+
+    def before_step(self) -> int:
+        n = self.plan[0] if self.plan and not self.done else (self.chosen or self.many)
+        if torch.get_num_threads() != n:
+            torch.set_num_threads(n)
+        return n
+
+    def after_step(self, seconds: float) -> None:
+        if self.done or not self.plan:
+            return
+        n = self.plan.pop(0)
+        self.spent += seconds
+        if self.warmup > 0:  # the first steps pay for allocations and thread pools: not timed
+            self.warmup -= 1
+        else:
+            self.times[n].append(seconds)
+        if not self.plan or (self.spent > self.max_s and all(self.times.values())):
+            self._decide()
+
+    def _decide(self) -> None:
+        import statistics
+
+        med = {n: statistics.median(t) for n, t in self.times.items() if t}
+        self.chosen = min(med, key=med.get) if med else self.many
+        self.medians = med
+        torch.set_num_threads(self.chosen)
+
+    def summary(self) -> str:
+        med = self.medians
+        rates = ", ".join(f"{n} thread{'s' if n > 1 else ''} {1 / t:.1f} steps/s" for n, t in sorted(med.items()))
+        return f"threads: measured {rates}: kept {self.chosen}"
+
+
 JEMALLOC = "/usr/lib/x86_64-linux-gnu/libjemalloc.so.2"
 JEMALLOC_ENV = "LIVESCENE_JEMALLOC"
 

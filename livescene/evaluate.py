@@ -342,7 +342,7 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
     # states on frames without labels
     learned = learned_frame_states(run)
     labels, given = views.dataset.label_matrix()
-    result["state_mae_labelled"] = float(np.abs(learned - labels)[given].mean()) if given.any() else None
+    result.update(labelled_state_errors(learned, labels, given, views))
     if truth is not None and m:
         free = ~given
         result["state_mae"] = float(np.abs(learned - truth.states)[free].mean()) if free.any() else None
@@ -407,6 +407,19 @@ def add_arguments(p) -> None:
                 "  livescene eval out/run --gt out/cap --out out/eval.json --max-frames 8")
 
 
+def labelled_state_errors(learned: np.ndarray, labels: np.ndarray, given: np.ndarray, views) -> dict[str, Any]:
+    """State MAE on the labelled training frames (fitted: how well Lvar held them) and on the labelled held-out
+    frames (never trained on: what to expect on unlabelled frames), apart, with how many labels each is over."""
+    out: dict[str, Any] = {}
+    for key, frames in (("train", views.train), ("held_out", views.held_out)):
+        mask = np.zeros_like(given)
+        mask[list(frames)] = given[list(frames)]
+        n = int(mask.sum())
+        out[f"state_mae_labelled_{key}"] = float(np.abs(learned - labels)[mask].mean()) if n else None
+        out[f"state_labels_{key}"] = n
+    return out
+
+
 def main(args) -> int:
     from .trainer import load_run
 
@@ -422,7 +435,8 @@ def main(args) -> int:
     res = evaluate(run, truth, max_frames=args.max_frames, scale=args.scale, novel=args.novel, fast=not args.exact)
     with writing(args.out):
         atomic.write_json(args.out, res)
-    keys = ["psnr", "ssim", "mask_iou", "depth_l1", "state_mae", "novel_state_psnr", "composition_psnr"]
+    keys = ["psnr", "ssim", "mask_iou", "depth_l1", "state_mae", "state_mae_labelled_train",
+            "state_mae_labelled_held_out", "novel_state_psnr", "composition_psnr"]
     print("livescene eval: " + ", ".join(f"{k} {res[k]:.4g}" for k in keys if res.get(k) is not None)
           + f" ({res['speed']['renderer']} renderer, {res['speed']['seconds_per_frame'] or 0:.2f} s a frame, "
             f"{res['speed']['rays_per_s'] or 0:,} rays/s) -> {args.out}")

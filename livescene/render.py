@@ -376,12 +376,17 @@ def add_arguments(p) -> None:
     p.add_argument("--out", type=Path, default=None, help="folder for PNGs (default RUN/renders)")
     p.add_argument("--cameras", default="dataset",
                    help="dataset (the dataset's cameras), held-out, path (a smooth path along them) or a JSON file")
-    p.add_argument("--frames", default="", help="dataset frame positions to render, e.g. 0,8,16 (default: all / 8)")
+    p.add_argument("--frames", default="",
+                   help="positions within the --cameras set, e.g. 0,8,16: with dataset the dataset's frames, with "
+                        "held-out the held-out frames (0 = the first held-out frame), with path or a JSON file its "
+                        "cameras (default: every 8th dataset frame, every held-out frame, every path/JSON camera)")
     p.add_argument("--count", type=int, default=30, help="cameras on a smooth path")
     p.add_argument("--state", action="append", default=[], metavar='"NAME=VALUE"', help="fix an object's state (repeatable)")
     p.add_argument("--command", default=None, metavar='"open the fridge"',
                    help='a spoken command: open / close / half open an object found by text (needs the language extra)')
-    p.add_argument("--sweep", default=None, metavar='"NAME=A:B:N"', help="sweep one object's state (first camera)")
+    p.add_argument("--sweep", default=None, metavar='"NAME=A:B:N"',
+                   help="sweep one object's state from each camera --cameras/--frames choose (with the default "
+                        "--cameras dataset and no --frames: from the first dataset frame)")
     p.add_argument("--time", type=float, default=None, help="learned states of this normalised frame time for free objects")
     p.add_argument("--scale", type=float, default=1.0, help="resolution scale of the rendered images")
     p.add_argument("--video", type=Path, default=None, help="also write an H.264 MP4 of the RGB frames")
@@ -397,6 +402,7 @@ def add_arguments(p) -> None:
     p.epilog = ('examples:\n'
                 '  livescene render out/run --cameras held-out --depth --probs\n'
                 '  livescene render out/run --sweep "fridge door=0:1:30" --video out/door.mp4\n'
+                '  livescene render out/run --cameras held-out --frames 0 --sweep "fridge door=0:1:30"  # 1st held-out\n'
                 '  livescene render out/run --command "open the fridge" --cameras held-out\n'
                 '  livescene render out/run --cameras path --count 60 --state "fridge door=0.3" --video out/path.mp4\n'
                 '  livescene render out/run --cameras cams.json   # {"frames": [{"transform_matrix": ..., "states": {...}}]}\n'
@@ -422,9 +428,7 @@ def main(args) -> int:
         base_states.update(apply_command(run, args.command))
     jobs: list[dict[str, Any]] = []
     if args.cameras in ("dataset", "held-out"):
-        pos = frame_positions(args.frames, len(views.times)) if args.frames else (
-            views.held_out if args.cameras == "held-out" else list(range(0, len(views.times), 8)))
-        for i in pos:
+        for i in (views.held_out if args.cameras == "held-out" else range(len(views.times))):
             jobs.append({"c2w": views.c2w_gl[i], "intrinsics": views.intrinsics[i], "states": None,
                          "time": float(views.times[i]), "name": views.dataset.frames[i].fid})
     elif args.cameras == "path":
@@ -434,13 +438,13 @@ def main(args) -> int:
     else:
         for j, c in enumerate(read_camera_path(Path(args.cameras), views.intrinsics[0])):
             jobs.append({**c, "time": 0.0, "name": f"cam_{j:04d}"})
+    jobs = choose_cameras(jobs, args)
     if not jobs:
         raise LiveSceneError("no cameras to render (check --cameras / --frames)")
     if args.sweep:
         name, values = parse_sweep(args.sweep)
-        first = jobs[0]
-        jobs = [{**first, "states": {name: float(v)}, "name": f"{first['name']}_{name.replace(' ', '_')}_{j:03d}"}
-                for j, v in enumerate(values)]
+        jobs = [{**cam, "states": {name: float(v)}, "name": f"{cam['name']}_{name.replace(' ', '_')}_{j:03d}"}
+                for cam in jobs for j, v in enumerate(values)]
     for msg in warn_unseen(run, jobs, base_states):
         print(f"livescene render: warning: {msg}", file=sys.stderr)
     out_dir = args.out or (args.run / "renders")
@@ -477,15 +481,27 @@ def check_render_args(args) -> None:
         raise LiveSceneError(f"--cameras {args.cameras!r}: use dataset, held-out, path or an existing JSON file")
 
 
-def frame_positions(text: str, n: int) -> list[int]:
-    """`--frames 0,8,16`: dataset frame positions, each in [0, n)."""
+def choose_cameras(jobs: list[dict[str, Any]], args) -> list[dict[str, Any]]:
+    """The cameras of the --cameras set that --frames names (positions within that set, so `--cameras held-out
+    --frames 0` is the first held-out frame, never dataset frame 0); without --frames every 8th dataset frame
+    (one for --sweep), or every camera of the other sets."""
+    if args.frames:
+        return [jobs[i] for i in frame_positions(args.frames, len(jobs), args.cameras)]
+    if args.cameras == "dataset":
+        return jobs[:1] if args.sweep else jobs[::8]
+    return jobs
+
+
+def frame_positions(text: str, n: int, cameras: str = "dataset") -> list[int]:
+    """`--frames 0,8,16`: positions within the --cameras set of n cameras, each in [0, n)."""
     try:
         pos = [int(x) for x in text.split(",") if x.strip()]
     except ValueError:
         raise LiveSceneError(f"--frames {text!r}: frame positions separated by commas, e.g. 0,8,16") from None
     bad = [i for i in pos if not 0 <= i < n]
     if bad:
-        raise LiveSceneError(f"--frames: position {bad[0]} is not a frame of the dataset (0 to {n - 1})")
+        what = "the dataset" if cameras == "dataset" else f"--cameras {cameras}"
+        raise LiveSceneError(f"--frames: position {bad[0]} is not a frame of {what} ({n} cameras: 0 to {n - 1})")
     return pos
 
 

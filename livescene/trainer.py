@@ -19,6 +19,7 @@ import functools
 import io
 import json
 import math
+import os
 import random
 import shutil
 import sys
@@ -37,7 +38,7 @@ from interreal.report import StageReport, read_report
 from . import losses as L
 from .config import TrainConfig, apply_overrides, check_config, from_dict, load_preset, preset_names, resolve_sizes
 from .data import RayData, Views, closest_point_depth, load_views
-from .device import JEMALLOC_ENV, configure_threads, describe, reexec_with_jemalloc, select_device
+from .device import JEMALLOC_ENV, ThreadTrial, configure_threads, describe, reexec_with_jemalloc, select_device
 from .errors import CheckpointError, DivergenceError, LiveSceneError, OutputError, writing
 from .field import LiveSceneModel
 from .sampler import render_rays
@@ -537,12 +538,18 @@ class Trainer:
 
         return pick_frames(self.eval_pool(), self.cfg.final_eval_frames)
 
+    @property
+    def quick_frame(self) -> int:
+        """The one held-out frame (mid-video) every evaluation during training renders: the same frame each time, so
+        the printed PSNRs show the fit improving, not one frame being easier than another."""
+        pool = self.eval_pool()
+        return int(pool[len(pool) // 2])
+
     def quick_eval(self) -> dict[str, float]:
-        """PSNR of one held-out frame (cycling through them) at `eval_max_side`: cheap enough to run while training."""
-        held = self.eval_pool()
-        i = held[self.eval_cursor % len(held)]
-        self.eval_cursor += 1
-        return {"psnr": self._timed_psnr(i), "frame": int(i)}
+        """PSNR of the held-out `quick_frame` at `eval_max_side`: cheap enough to run while training."""
+        i = self.quick_frame
+        self.eval_cursor += 1  # evaluations so far (kept in checkpoints)
+        return {"psnr": self._timed_psnr(i), "frame": i}
 
     def _timed_psnr(self, i: int) -> float:
         """heldout_psnr at `eval_max_side`, recording the render speed that `end_reserve` plans with."""
@@ -588,7 +595,7 @@ class Trainer:
         if self.step == 0:
             self.save_checkpoint()
         if self.max_minutes and not self._eval_s_per_px:  # a time limit needs the final evaluation's cost up front
-            first = self.eval_pool()[0]
+            first = self.quick_frame
             self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2),
                        "psnr": self._timed_psnr(first), "frame": int(first)})
         if self._t_init is not None:  # loading, setting up and that first render, once per process
@@ -601,8 +608,18 @@ class Trainer:
                    dynamic_ncols=True, unit="step")
         stop_reason = "steps"
         self.model.train()
+        trial = ThreadTrial(os.cpu_count() or 1) if getattr(self, "measure_threads", False) else None
         while self.step < cfg.steps:
+            t_step = time.perf_counter()
+            if trial is not None:
+                trial.before_step()
             info = self.train_step()
+            if trial is not None:
+                trial.after_step(time.perf_counter() - t_step)
+                if trial.done:
+                    bar.write(f"livescene train: {trial.summary()}")
+                    self.threads_measured = {"kept": trial.chosen, "seconds_per_step": trial.medians}
+                    trial = None
             if not math.isfinite(info["loss"]):
                 self._rollback("loss is NaN/inf")
                 continue
@@ -622,7 +639,8 @@ class Trainer:
                 ev = self.quick_eval()
                 self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2), **ev})
                 which = "held-out" if self.views.held_out else "training-frame (none held out)"
-                bar.write(f"step {self.step}: {which} PSNR {ev['psnr']:.2f} dB (frame position {ev['frame']})")
+                bar.write(f"step {self.step}: {which} PSNR {ev['psnr']:.2f} dB (frame position {ev['frame']}, the "
+                          f"same every time)")
                 self.overhead += time.perf_counter() - t0
             if cfg.ckpt_every and self.step % cfg.ckpt_every == 0:
                 t0 = time.perf_counter()
@@ -647,7 +665,8 @@ class Trainer:
                 # with no frame held out (a few frames, or holdout_every <= 1) the end-of-run PSNR is on
                 # training frames: named as such, never as "held-out"
                 "eval_psnr": final["psnr"], "eval_frames": len(final["frames"]),
-                "eval_on": "held-out" if held else "training", "rollbacks": self.retries}
+                "eval_on": "held-out" if held else "training", "rollbacks": self.retries,
+                **({"threads": self.threads_measured} if getattr(self, "threads_measured", None) else {})}
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -667,7 +686,8 @@ def add_arguments(p) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a setting, e.g. --set model.features=32 --set loss.var=0.5 (repeatable)")
     p.add_argument("--threads", type=int, default=0,
-                   help="CPU threads (0 = auto: all cores, or 1 when the machine is already busy)")
+                   help="CPU threads (0 = auto: the first steps are timed at all cores and at 1 thread, and "
+                        "the faster is kept; a busy machine can make more threads slower)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (logs still go to metrics.jsonl)")
     p.epilog = ("examples:\n"
                 "  livescene train out/ds --out out/run                       # cpu preset on CPU, gpu preset on CUDA\n"
@@ -680,8 +700,9 @@ def add_arguments(p) -> None:
 
 
 def train(dataset: str | Path, out: str | Path, cfg: TrainConfig, device: str = "auto", resume: bool = False,
-          max_minutes: float = 0.0, show_progress: bool = True) -> dict[str, Any]:
-    """Train (or resume) a run; returns a summary. Writes RUN/reports/train.json.
+          max_minutes: float = 0.0, show_progress: bool = True, measure_threads: bool = False) -> dict[str, Any]:
+    """Train (or resume) a run; returns a summary. Writes RUN/reports/train.json. measure_threads: on a CPU, time
+    the first steps at all cores and at 1 thread and keep the faster (`device.ThreadTrial`; `--threads 0`).
 
     A resumed run that already finished (its steps done, its report "ok") is left untouched: the summary is its
     report's, with "finished": True. A run folder this call created is removed again when the call fails before
@@ -696,6 +717,7 @@ def train(dataset: str | Path, out: str | Path, cfg: TrainConfig, device: str = 
             done = finished_summary(trainer) if resume else None
             if done is not None:
                 return done
+            trainer.measure_threads = measure_threads and trainer.device.type == "cpu"
             return _train(trainer, out)
     except Exception:
         if created and out.is_dir() and not checkpoint_files(out):
@@ -710,6 +732,9 @@ def _train(trainer: "Trainer", out: Path) -> dict[str, Any]:
     try:
         for message, cause in label_warnings(trainer.views):
             rep.warn(message, cause=cause)
+            # now, not after training: a shortage found after minutes of training costs those minutes
+            print(f"livescene train: warning: {message}", file=sys.stderr)
+        early = len(rep.data["warnings"])
         summary = trainer.fit()
         rep.figures.update(summary)
         for message, cause in state_warnings(*learned_states(trainer)):
@@ -725,7 +750,7 @@ def _train(trainer: "Trainer", out: Path) -> dict[str, Any]:
         raise
     with writing(out / "reports" / "train.json"):
         rep.__exit__(None, None, None)
-    for w in rep.data["warnings"]:
+    for w in rep.data["warnings"][early:]:
         print(f"livescene train: warning: {w['message']}", file=sys.stderr)
     return summary
 
@@ -768,10 +793,8 @@ def remove_stale_temporaries(run_dir: Path) -> list[Path]:
     return gone
 
 
-# below these, the learned per-frame states or the renders are not to be trusted (bench_train label and time sweeps:
-# state MAE 0.15 at 5 % labels vs 0.057 at 10 %; held-out PSNR of runs that are still far from converged)
-MIN_LABEL_FRACTION = 0.08
-MIN_LABELS = 3
+# below this, the renders are not to be trusted (held-out PSNR of runs that are still far from converged); the
+# label figures are interreal.dataset.MIN_LABELS / MIN_LABEL_FRACTION
 LOW_FIT_PSNR = 24.0  # renders below this are visibly blurry (the stress suite's usable threshold)
 
 
@@ -804,16 +827,13 @@ def state_warnings(values: np.ndarray, views) -> list[tuple[str, str]]:
 
 
 def label_warnings(views) -> list[tuple[str, str]]:
-    """(message, cause) for each object whose state labels are too sparse for Lvar to pin its states down."""
-    out = []
-    n_train = max(len(views.train), 1)
-    for k, name in enumerate(views.names):
-        n = int(views.given[views.train, k].sum())
-        if n < MIN_LABELS or n / n_train < MIN_LABEL_FRACTION:
-            out.append((f"'{name}' has state labels on only {n} of {n_train} training frames "
-                        f"({n / n_train:.0%}): its states on the other frames may be wrong; label about 10 % of "
-                        f"the frames (`interreal label DS --set '{name}' FRAME VALUE`)", "few-labels"))
-    return out
+    """(message, cause) for each object whose state labels on the training frames are too sparse for Lvar to pin
+    its states down (interreal.dataset.label_shortage: the figures `interreal validate` warns with)."""
+    from interreal.dataset import label_shortage
+
+    counts = {name: int(views.given[views.train, k].sum()) for k, name in enumerate(views.names)}
+    return [(m.replace(" frames (", " training frames (", 1), "few-labels")
+            for _, m in label_shortage(counts, len(views.train))]
 
 
 def main(args) -> int:
@@ -839,7 +859,8 @@ def main(args) -> int:
     if args.max_minutes < 0 or not math.isfinite(args.max_minutes):
         raise LiveSceneError(f"--max-minutes {args.max_minutes}: give a positive number of minutes (0 = no limit)")
     summary = train(args.dataset, args.out, cfg, device=str(device), resume=args.resume,
-                    max_minutes=args.max_minutes, show_progress=not args.no_progress)
+                    max_minutes=args.max_minutes, show_progress=not args.no_progress,
+                    measure_threads=args.threads <= 0)
     if summary.get("finished"):
         print(f"livescene train: {args.out} already finished ({summary['steps']} steps): nothing to do, its outputs "
               f"are unchanged (pass --steps N above {summary['steps']} with --resume to train further)")

@@ -301,6 +301,7 @@ def _fit_hinge(pv: PartViews, states: np.ndarray, known: np.ndarray, vecs: np.nd
     pos = sigma * pv.u + pv.centre
     pred_pos = np.einsum("fij,j->fi", pred_rot, b0) + np.einsum("fij,j->fi", eye - pred_rot, origin)
     extra.update(scale=float(sigma), state_rmse_from_pose=_state_rmse(angle - c, rate, states, known),
+                 label_check=_label_check(pv.frames, (angle - c) / rate, states, known),
                  rot_residual_deg=round(float(np.median(resid_rot[known])), 3),
                  pos_residual=float(np.median(np.linalg.norm(pos - pred_pos, axis=1)[known])))
     return Articulation("hinge", axis, origin, rate, extra), extra
@@ -312,6 +313,26 @@ def _state_rmse(motion: np.ndarray, rate: float, states: np.ndarray, known: np.n
     if not abs(rate) > 1e-12 or not known.any():
         return float("inf")
     return round(float(np.sqrt(np.mean((motion[known] / rate - states[known]) ** 2))), 4)
+
+
+def _label_check(frames: np.ndarray, measured: np.ndarray, states: np.ndarray, known: np.ndarray) -> list[list]:
+    """[[dataset position, labelled state, measured state], ...] of the labelled frames the fit used: what the
+    warnings name when the motion and the labels disagree."""
+    return [[int(frames[i]), round(float(states[i]), 3), round(float(measured[i]), 3)] for i in np.flatnonzero(known)
+            if np.isfinite(measured[i])]
+
+
+def disagreement_text(check: list[list], fids: list[str], most: int = 5) -> str:
+    """'measured states -0.05..1.12; labels that disagree most: 00042 (label 1.00, measured 0.62), ...'"""
+    if not check:
+        return "no labelled frame was measured"
+    measured = [m for _, _, m in check]
+    worst = sorted(check, key=lambda r: -abs(r[2] - r[1]))
+    off = [r for r in worst if abs(r[2] - r[1]) > MAX_STATE_RMSE][:most]
+    return (f"measured states {min(measured):.2f} to {max(measured):.2f} on {len(check)} labelled frames; "
+            + ("labels off by more than " + f"{MAX_STATE_RMSE}: " + ", ".join(
+                f"{fids[f]} (label {lab:.2f}, measured {m:.2f})" for f, lab, m in off) if off
+               else "no single label is off by more than " + f"{MAX_STATE_RMSE}"))
 
 
 def _still_frames(rot: np.ndarray) -> np.ndarray:
@@ -343,20 +364,25 @@ def _fit_slide(pv: PartViews, states: np.ndarray, known: np.ndarray, extra: dict
     pos = sigma * pv.u + pv.centre
     along = (pos - b0) @ axis
     extra.update(scale=float(sigma), state_rmse_from_pose=_state_rmse(along, rate, states, known & still),
+                 label_check=_label_check(pv.frames, along / max(rate, 1e-12), states, known & still),
                  pos_residual=float(np.median(np.linalg.norm(pos[idx] - b0 - np.outer(states[idx], v), axis=1))))
     return Articulation("slide", axis, b0, rate, extra), extra
 
 
 def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known: np.ndarray,
-                 cfg: MotionConfig) -> tuple[Articulation | None, dict[str, Any]]:
+                 cfg: MotionConfig, step: Any = None) -> tuple[Articulation | None, dict[str, Any]]:
     """The part's motion from its own reconstruction; states, known (N,) over the dataset's frames.
 
     The mapper is run with up to `cfg.attempts` seeds on the same matches, until a motion gives the labelled states
     within half of MAX_STATE_RMSE: a nearly planar part sometimes comes out bent or with a flipped view, which the
-    labels tell. The best attempt is returned (None when none registered enough frames with a known state)."""
+    labels tell. The best attempt is returned (None when none registered enough frames with a known state).
+    step(text): called as each phase starts (a progress bar)."""
+    step = step or (lambda text: None)
+    step("matching")
     db = match_part(pc, ds, names, part / "masks", part, cfg)
     best: tuple[Articulation | None, dict[str, Any]] = (None, {"registered": 0})
     for a in range(cfg.attempts):
+        step(f"reconstruction {a + 1}/{cfg.attempts}")
         rec = map_part(pc, ds, db, part / "sparse" / str(a), cfg, cfg.seed + a)
         pv = part_views(rec, ds) if rec is not None else None
         if pv is None or len(pv.frames) < cfg.min_registered or int(known[pv.frames].sum()) < cfg.min_known:
@@ -421,12 +447,23 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                     rep.warn(f"'{name}' shows in only {len(names)} frames: no motion measured (the k-axis alone "
                              f"will move it)", cause="motion-unseen", object=name)
                     continue
-                with NativeLog(part / "colmap.log", cfg.verbose):
-                    motion, fig = measure_part(pc, ds, names, part, states[:, o], known[:, o], cfg)
+                with NativeLog(part / "colmap.log", cfg.verbose) as log:
+                    from tqdm import tqdm
+
+                    # on the terminal even while COLMAP's log (fd 2) goes to the file: a part takes minutes
+                    with tqdm(total=1 + cfg.attempts, desc=f"motions '{name}'", file=log.term, leave=False,
+                              unit="phase") as bar:
+                        def step(text: str) -> None:
+                            if text != "matching":
+                                bar.update(1)
+                            bar.set_postfix_str(text)
+
+                        motion, fig = measure_part(pc, ds, names, part, states[:, o], known[:, o], cfg, step)
                 st.update({k: v if not isinstance(v, float) or np.isfinite(v) else None for k, v in fig.items()})
                 if motion is None:
-                    rep.warn(f"'{name}': its own reconstruction registered {st['registered']} frames "
-                             f"(need {cfg.min_registered}, {cfg.min_known} with a known state): no motion measured; "
+                    rep.warn(f"'{name}': its own reconstruction registered only {st['registered']} of the "
+                             f"{len(names)} frames it shows in (need {cfg.min_registered}, {cfg.min_known} with a "
+                             f"known state), best of {fig['attempts']} reconstructions: no motion measured; "
                              f"label more frames where it moves, or film it with more texture in view",
                              cause="motion-unregistered", object=name)
                     continue
@@ -435,9 +472,11 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                 if not rmse <= MAX_STATE_RMSE:
                     how = (f"gives the labelled states only within {rmse:.2f} (RMSE > {MAX_STATE_RMSE})"
                            if np.isfinite(rmse) else "does not change with the labelled states")
+                    fids = [f.fid for f in ds.frames]
                     rep.warn(f"'{name}': the measured {motion.kind} {how}, best of {fig['attempts']} "
-                             f"reconstructions: not used; check its labels and masks",
-                             cause="motion-inconsistent", object=name)
+                             f"reconstructions, which registered {fig['registered']} of the {len(names)} frames it "
+                             f"shows in; {disagreement_text(fig.get('label_check', []), fids)}: not used; check "
+                             f"those labels and the part's masks", cause="motion-inconsistent", object=name)
                     continue
                 motions[name] = motion
         write_articulation(ds_path, motions, {"source": "interreal motions"})

@@ -84,9 +84,11 @@ class ThreadTrial:
 
     Use: `threads = trial.before_step()` before each step, `trial.after_step(seconds)` after it, until `done`."""
 
-    def __init__(self, many: int, block: int = 3, blocks: int = 4, warmup: int = 2, max_s: float = 6.0):
-        self.many, self.warmup, self.max_s = many, warmup, max_s
-        self.plan = [many] * warmup + [n for b in range(blocks) for n in ([many, 1][b % 2],) * block]
+    def __init__(self, many: int, block: int = 3, blocks: int = 4, max_s: float = 4.0):
+        # one untimed step at each (allocations, thread pools), then blocks from 1 thread up: when many threads are
+        # the slow choice, `max_s` ends the trial after one of their blocks
+        self.many, self.warmup, self.max_s = many, 2, max_s
+        self.plan = [many, 1] + [n for b in range(blocks) for n in ([1, many][b % 2],) * block]
         self.times: dict[int, list[float]] = {many: [], 1: []}
         self.spent = 0.0
         self.chosen: int | None = None if many > 1 else many

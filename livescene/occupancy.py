@@ -296,6 +296,16 @@ def build_grid(model: LiveSceneModel, box: tuple[torch.Tensor, torch.Tensor], st
     return out
 
 
+def build_cost(model: LiveSceneModel, box: tuple[torch.Tensor, torch.Tensor], shrink: int = 4) -> float:
+    """Seconds `build_grid` will take, from a build at 1/`shrink` of the resolution scaled by the cell count (the
+    work is a field read per corner and state): a time-limited training reserves it before its last step."""
+    lo, hi = box[0].float(), box[1].float()
+    full = default_resolution(model)
+    small = build_grid(model, box, resolution=max(MIN_RES, full // shrink))
+    cells = [math.prod(grid_shape(lo, hi, res)) for res in (full, max(MIN_RES, full // shrink))]
+    return small.info["build_s"] * cells[0] / cells[1]
+
+
 def grid_for(run, build: bool = True) -> OccupancyGrid | None:
     """The run's occupancy grid: the one its checkpoint carries, else the cached one next to it
     (RUN/occupancy.pt, for runs trained before grids), else built now and cached (when `build`). None for a

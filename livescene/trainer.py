@@ -318,6 +318,7 @@ class Trainer:
         self.overhead = 0.0
         self._eval_s_per_px = 0.0  # measured on the periodic evals, to reserve time for the final one
         self._ckpt_s = 0.0
+        self._grid_s = 0.0  # the occupancy grid built after the last step (estimated up front with a time limit)
         self.eval_cursor = 0
         if resume_ckpt is not None:
             self._restore(resume_ckpt)
@@ -503,7 +504,7 @@ class Trainer:
 
     def end_reserve(self) -> float:
         """Seconds the run still needs after its last step: the final evaluation and the final checkpoint."""
-        return self._final_eval_cost(self.final_side()) + self._ckpt_s
+        return self._final_eval_cost(self.final_side()) + self._ckpt_s + self._grid_s
 
     def train_budget(self) -> float:
         """Training seconds `max_minutes` leaves once loading, evaluations, checkpoints and the end are paid for."""
@@ -594,6 +595,10 @@ class Trainer:
             print(f"  rigid parts (articulation.json): {', '.join(rigid)}; read at k = {m.part_k}", flush=True)
         if self.step == 0:
             self.save_checkpoint()
+        if self.max_minutes and not self._grid_s:
+            from .occupancy import build_cost
+
+            self._grid_s = build_cost(self.model, self.box)
         if self.max_minutes and not self._eval_s_per_px:  # a time limit needs the final evaluation's cost up front
             first = self.quick_frame
             self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2),

@@ -188,3 +188,47 @@ def test_thread_trial_keeps_the_faster_of_many_and_one_thread():
         assert ThreadTrial(1).done  # one core: nothing to measure
     finally:
         torch.set_num_threads(before)
+
+
+def test_motions_name_the_labels_that_disagree_and_report_progress(monkeypatch, tmp_path):
+    import numpy as np
+
+    from interreal import motions
+    from test_motions import _slide_case
+
+    truth, states, known, pv = _slide_case(seed=4, wild=0)
+    labelled = states.copy()
+    bad = np.flatnonzero(known & (states == 0))[:2]  # two eyeballed labels that say open where it is closed
+    labelled[bad] = 1.0
+    motion, fig = motions.fit_motion(pv, labelled, known)
+    check = {f: (lab, m) for f, lab, m in fig["label_check"]}
+    assert len(check) >= known.sum() - fig["slide_rejected"] - 1
+    for f in bad:
+        assert check[f][0] == 1.0 and check[f][1] < 0.3  # the geometry says closed
+    fids = [f"{i:05d}" for i in range(len(states))]
+    text = motions.disagreement_text(fig["label_check"], fids)
+    assert all(f"{fids[f]} (label 1.00" in text for f in bad) and "measured states" in text
+    # progress: one call as each phase starts
+    phases = []
+    monkeypatch.setattr(motions, "match_part", lambda *a, **k: tmp_path / "database.db")
+    monkeypatch.setattr(motions, "map_part", lambda *a, **k: 0)
+    monkeypatch.setattr(motions, "part_views", lambda rec, ds: pv)
+    motions.measure_part(None, None, [], tmp_path, states, known, motions.MotionConfig(attempts=3), phases.append)
+    assert phases == ["matching", "reconstruction 1/3"]
+
+
+def test_masks_suggest_one_list_of_keyframes_that_the_warnings_name_too():
+    import numpy as np
+
+    from interreal.masks.confidence import next_keyframes, suggest_frames
+
+    rng = np.random.default_rng(0)
+    conf = rng.uniform(0.6, 0.95, (130, 1))
+    conf[60:75] = 0.2  # least certain stretch: what suggest_frames picks first
+    is_key = np.zeros(130, bool)
+    is_key[[0, 129]] = True
+    lost = [[(100, 110)]]  # the object vanished there (a confident but empty mask)
+    picks = next_keyframes(conf, is_key, 5, lost, reach=[40])
+    assert picks[:2] == [100, 40] and len(picks) == 5  # the lost stretch the warning names is suggested first
+    assert set(picks[2:]) <= set(suggest_frames(conf, is_key, 5))
+    assert next_keyframes(conf, is_key, 0, lost, [40]) == []

@@ -54,6 +54,18 @@ def keyframe_reach(motion: np.ndarray, keys: list[int]) -> list[tuple[int, int, 
     return out
 
 
+def next_keyframes(conf: np.ndarray, keyframe: np.ndarray, n: int, lost: list[list[tuple[int, int]]],
+                   reach: list[int]) -> list[int]:
+    """The one list of frames to annotate next (at most n) that the report, the CLI and every masks warning name:
+    the first frame of each stretch where an object was lost, then frames the view moved far from any keyframe to
+    (`reach`), then `suggest_frames`' least certain ones. Two lists (a warning naming 00126, the report 71, 58, ...)
+    left the user guessing which to follow."""
+    if n <= 0:
+        return []
+    urgent = [a for runs in lost for a, _ in runs] + list(reach)
+    return [int(i) for i in dict.fromkeys(urgent + suggest_frames(conf, keyframe, n)) if not keyframe[i]][:n]
+
+
 def reach_suggestion(motion: np.ndarray, first: int, last: int, keys: list[int]) -> int:
     """The frame of a stretch that a new keyframe should go to: halfway (by motion) between the keyframes around
     it, or the far end of a one-sided stretch."""

@@ -17,7 +17,7 @@ from ..dataset import list_images, read_image_rgb, read_mapping, write_mapping, 
 from ..errors import InputError
 from ..report import StageReport, files_fingerprint, finished_with, fingerprint, tree_fingerprint
 from .appearance import AppearanceConfig
-from .confidence import keyframe_reach, reach_suggestion, suggest_frames
+from .confidence import keyframe_reach, next_keyframes, reach_suggestion
 from . import health as H
 from .flow import FlowConfig
 from .keyframes import load_keyframes
@@ -176,7 +176,10 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
                                  crf=28) as vw:
                     for p in sorted(video):
                         vw.write(video[p])
-        picks = suggest_frames(conf, is_key, suggest)
+        reach = keyframe_reach(motion, keys) if len(fids) > 1 else []
+        far = sorted((x for x in reach if x[2] > MAX_REACH), key=lambda x: -x[2])
+        picks = next_keyframes(conf, is_key, suggest, hl.stretches["lost"],
+                               [reach_suggestion(motion, a, b, keys) for a, b, _ in far[:3]])
         mean_pred = hl.mean_predicted(is_key)
         rep.figures.update({
             "frames": len(fids), "keyframes": sorted(kf.masks), "objects": kf.names,
@@ -199,10 +202,8 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
                          "ref_share": [round(float(v), 6) for v in ref_area[:, k]],
                          "expected": [bool(v) for v in expected[:, k]]} for k, n in enumerate(kf.names)},
         })
-        reach = keyframe_reach(motion, keys) if len(fids) > 1 else []
         rep.figures["keyframe_reach"] = [{"first": fids[a], "last": fids[b], "reach": round(r, 4)} for a, b, r in reach]
         rep.figures["max_keyframe_reach"] = round(max((r for _, _, r in reach), default=0.0), 4)
-        far = sorted((x for x in reach if x[2] > MAX_REACH), key=lambda x: -x[2])
         for k, n in enumerate(kf.names):
             lost = hl.stretches["lost"][k]
             if lost:
@@ -217,7 +218,7 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
             if far:
                 why.append("the view moves up to " + ", ".join(f"{100 * r:.0f} %" for _, _, r in far[:1])
                            + f" of its width from the nearest keyframe (propagation holds to about {100 * MAX_REACH:.0f} %)")
-            add = sorted({fids[i] for i in picks[:5]} | {fids[reach_suggestion(motion, a, b, keys)] for a, b, _ in far[:3]})
+            add = sorted({fids[i] for i in picks[:8]} or {fids[reach_suggestion(motion, a, b, keys)] for a, b, _ in far[:3]})
             rep.warn(f"'{n}': masks are unreliable (predicted J {mean_pred[k]:.2f}, under {H.WARN_J}): "
                      f"{'; '.join(why) or 'low confidence throughout'}; add keyframes at {', '.join(add[:8])}",
                      cause="masks-unreliable", object=n)

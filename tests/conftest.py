@@ -65,6 +65,18 @@ def make_tiny_dataset(root: Path, n_frames: int = 4, size: tuple[int, int] = (32
     return root
 
 
+@pytest.fixture(scope="module")
+def one_thread():
+    """One torch thread for a module's trainings: on a shared 2-core machine, OpenMP workers waiting on each other
+    cost 10x."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture
 def tiny_dataset(tmp_path: Path) -> Path:
     return make_tiny_dataset(tmp_path / "ds")

@@ -32,19 +32,16 @@ TRAIN_FLAGS = ["--preset", "tiny", "--steps", "2", "--device", "cpu", "--threads
 
 
 @pytest.fixture(scope="module")
-def base(tmp_path_factory):
+def base(tmp_path_factory, one_thread):
     """(root, dataset, run): a 10-frame toy dataset and a tiny run of 10 steps with checkpoints at 5 and 10."""
     from livescene.config import load_preset
     from livescene.trainer import train
 
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("bad_inputs")
     ds = toy_dataset(root / "ds", n_frames=10, size=(16, 12))
     cfg = load_preset("tiny")
     cfg.steps, cfg.eval_every, cfg.ckpt_every, cfg.log_every, cfg.final_eval_frames = 10, 0, 5, 5, 1
     train(ds, root / "run", cfg, device="cpu", show_progress=False)
-    torch.set_num_threads(before)
     return root, ds, root / "run"
 
 

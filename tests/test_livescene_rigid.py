@@ -23,17 +23,14 @@ TOY_DOOR = Articulation("hinge", np.array([0.0, 0.0, 1.0]), np.array([-0.9, 0.6,
 
 
 @pytest.fixture(scope="module")
-def rigid_run(tmp_path_factory):
+def rigid_run(tmp_path_factory, one_thread):
     """The toy scene trained with the door's motion (one torch thread, ~20 s)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("rigid")
     ds = toy_dataset(root / "ds", n_frames=24, size=(40, 30))
     write_articulation(ds, {"door": TOY_DOOR}, {"source": "test"})
     cfg = load_preset("tiny")
     cfg.steps = 400
     summary = train(ds, root / "run", cfg, device="cpu", show_progress=False)
-    torch.set_num_threads(before)
     return root / "run", summary
 
 

@@ -25,18 +25,15 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 @pytest.fixture(scope="module")
-def rigid_run(tmp_path_factory):
+def rigid_run(tmp_path_factory, one_thread):
     """The toy door trained with its hinge (one torch thread, a few seconds on an idle core)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("fast")
     ds = toy_dataset(root / "ds", n_frames=16, size=(32, 24))
     write_articulation(ds, {"door": TOY_DOOR}, {"source": "test"})
     cfg = load_preset("tiny")
     cfg.steps = 200
     train(ds, root / "run", cfg, device="cpu", show_progress=False)
-    yield root / "run"
-    torch.set_num_threads(before)
+    return root / "run"
 
 
 def _view(run, pos: int = 3, scale: float = 1.0):

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 pytest.importorskip("fastapi", reason="the 'web' extra is part of the dev environment")
 from fastapi.testclient import TestClient  # noqa: E402
@@ -48,13 +47,7 @@ def train_tiny_run(root: Path, steps: int = 300, frames: int = 24) -> Path:
     return root / "run"
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One torch thread: on a shared 2-core machine, OpenMP workers waiting on each other cost 10x."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def open_session(run_dir: Path):

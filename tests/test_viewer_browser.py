@@ -40,21 +40,16 @@ def browser():
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    import torch
-
+def server(tmp_path_factory, one_thread):
     from livescene.trainer import load_run
     from livescene.viewer import ViewerServer
     from livescene.viewer.session import ViewerSession
 
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
     run_dir = train_tiny_run(tmp_path_factory.mktemp("viewer_browser"))
     session = ViewerSession(load_run(run_dir, device="cpu"), low=48, sharp=96)
     srv = ViewerServer(session, port=0).start()
     yield srv, session
     srv.stop()
-    torch.set_num_threads(before)
 
 
 def rest(page, timeout: float = 120000) -> None:

@@ -35,7 +35,7 @@ from typing import Any, Callable
 from ..errors import InputError, InterRealError, MissingExtraError
 from ..localserver import LocalGuard, LocalServer, MiB, allowed_hosts
 from ..localserver import machine_addresses  # noqa: F401  (the addresses a wildcard bind is reached by)
-from .store import Conflict, DatasetStore, Outside, UnknownFrame, encode_index_png
+from .store import Conflict, DatasetStore, Outside, UnknownFrame, encode_index_png, finite_number
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 STATIC_FILES = {"app.js": "text/javascript; charset=utf-8", "app.css": "text/css; charset=utf-8"}
@@ -363,16 +363,6 @@ def _no_constant(name: str) -> Any:
     raise ValueError(f"{name} is not a number (send a finite number or null)")
 
 
-def _finite(value: Any) -> bool:
-    """A JSON number that is a finite float (true/false and 400-digit integers are not)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return False
-    try:
-        return math.isfinite(value)
-    except OverflowError:
-        return False
-
-
 def _kind(value: Any) -> str:
     """The JSON name of a value's type, for messages."""
     if value is None:
@@ -437,7 +427,7 @@ class Fields:
             raise InputError(f"{self.where}: {len(value)} points; a shape may have at most {MAX_POINTS}")
         for p in value:
             if not (isinstance(p, list) and len(p) == 2
-                    and all(_finite(c) for c in p)):
+                    and all(finite_number(c) for c in p)):
                 raise InputError(f"{self.where}: {key!r} must be a list of [x, y] pairs of numbers; "
                                  f"found {json.dumps(p)[:40]}")
         return value

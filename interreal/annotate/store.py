@@ -112,7 +112,7 @@ class BadLabel:
                 "problem": f"{LABELS_FILE}: {self.frame}{': ' + self.object if self.object else ''}: {self.problem}"}
 
 
-def _finite(value: Any) -> bool:
+def finite_number(value: Any) -> bool:
     """A number (not true/false) that is a finite float; False for a 400-digit integer too."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return False
@@ -443,7 +443,7 @@ class DatasetStore:
                 except OverflowError:
                     raise InputError(f"{name} @ {key}: {value} is outside [0, 1]") from None
                 base = e.get("base")
-                if base is not None and not _finite(base):
+                if base is not None and not finite_number(base):
                     raise InputError(f"{name} @ {key}: 'base' {str(base)[:40]!r} must be the number the page read, "
                                      f"or null when there was no label")
                 base = None if base is None else float(base)

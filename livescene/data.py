@@ -160,9 +160,10 @@ def _box_of(value, where: str) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------------------------
 # Checks: what the trainer reads must be right before it trains (else the optimiser gets the blame)
 # ----------------------------------------------------------------------------------------------------------------
-def require_valid(path: str | Path) -> None:
+def require_valid(path: str | Path, check_masks: bool = True) -> None:
     """The dataset passes `interreal validate` (the same checks, one code path), else InvalidDatasetError with
-    every problem listed. There is no override: a broken dataset trains or renders garbage.
+    every problem listed. There is no override: a broken dataset trains or renders garbage. `check_masks=False`
+    reads only each mask's header (dtype, shape): what a trained run's readers need, in a 30th of the time.
 
     One exception: a dataset with no masks at all is accepted (the colour field trains; grounding and mask figures
     then say the run has no masks); some frames without a mask is an error."""
@@ -170,7 +171,7 @@ def require_valid(path: str | Path) -> None:
 
     from interreal.dataset import format_problems, validate
 
-    result = validate(path)
+    result = validate(path, check_masks=check_masks)
     problems = result.problems
     missing = [p for p in problems if p.kind == "missing-mask"]
     if missing and len(missing) == result.summary.get("frames", -1):
@@ -326,9 +327,9 @@ def working_size(intr: Intrinsics, image_hw: tuple[int, int], max_side: int) -> 
     return w, h
 
 
-def load_views(path: str | Path, cfg: TrainConfig) -> Views:
+def load_views(path: str | Path, cfg: TrainConfig, check_masks: bool = True) -> Views:
     """The dataset's cameras and labels, after `require_valid` (an invalid dataset is refused, never read)."""
-    require_valid(path)
+    require_valid(path, check_masks)
     ds = load_dataset(path)
     if not ds.frames:
         raise LiveSceneError(f"{path}: transforms.json lists no frames")

@@ -19,9 +19,6 @@ from interreal.dataset import read_labels, read_mapping
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-        "--disable-sync", "--no-first-run"]
 W, H = 320, 240
 FRAMES = 12
 
@@ -51,19 +48,6 @@ def outline(mask: np.ndarray) -> list[tuple[float, float]]:
     c = max(contours, key=cv2.contourArea)
     poly = cv2.approxPolyDP(c, 1.0, True)[:, 0, :]
     return [(float(x) + 0.5, float(y) + 0.5) for x, y in poly]
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not Path(CHROMIUM).exists():
-        pytest.fail(f"{CHROMIUM} is missing: the browser tests need Debian's Chromium: apt-get install chromium "
-                    "(.ci/run installs it)")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
-        yield b
-        b.close()
 
 
 @pytest.fixture

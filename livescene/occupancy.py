@@ -176,14 +176,21 @@ def _part_density(dens: _Densities, model: LiveSceneModel, obj: int, box: tuple[
     else:  # no hull: the part may own any point of its rest frame
         lo, hi = box
         hull = torch.ones(shape, dtype=torch.bool, device=lo.device)
-    cells = tuple(hull.shape)
-    touched = F.max_pool3d(F.pad(hull.float(), (1, 1, 1, 1, 1, 1))[None, None], 2, stride=1)[0, 0] > 0
-    nodes = _lattice(lo, hi, cells)
+    return lo, hi, _masked_corner_max(dens, lo, hi, hull, k_values)
+
+
+def _masked_corner_max(dens: "_Densities", lo: torch.Tensor, hi: torch.Tensor, cells: torch.Tensor,
+                       k_values: list[float]) -> torch.Tensor:
+    """(X, Y, Z) max over `k_values` of the density at each set cell's corners, 0 in the other cells: only the
+    corners of the cells set in `cells` (bool (X, Y, Z)) are read from the field."""
+    shape = tuple(cells.shape)
+    touched = F.max_pool3d(F.pad(cells.float(), (1, 1, 1, 1, 1, 1))[None, None], 2, stride=1)[0, 0] > 0
+    nodes = _lattice(lo, hi, shape)
     at = touched.reshape(-1).nonzero()[:, 0]
     values = torch.zeros(nodes.shape[0], device=lo.device)
     for k in k_values:
         values[at] = torch.maximum(values[at], dens.world(nodes[at], k))
-    return lo, hi, _corner_max(values, cells) * hull
+    return _corner_max(values, shape) * cells
 
 
 def _sweep_steps(model: LiveSceneModel, obj: int, lo: torch.Tensor, hi: torch.Tensor, cell: float) -> int:
@@ -252,13 +259,7 @@ def _max_over_k(dens: _Densities, lo: torch.Tensor, hi: torch.Tensor, shape: tup
         sweep = torch.maximum(sweep, dens.world(nodes, k))
     coarse = _dilate(_corner_max(sweep, coarse_shape))
     near = F.interpolate(coarse[None, None], size=shape, mode="nearest")[0, 0] >= floor
-    touched = F.max_pool3d(F.pad(near.float(), (1, 1, 1, 1, 1, 1))[None, None], 2, stride=1)[0, 0] > 0
-    nodes = _lattice(lo, hi, shape)
-    at = touched.reshape(-1).nonzero()[:, 0]
-    values = torch.zeros(nodes.shape[0], device=lo.device)
-    for k in k_values:
-        values[at] = torch.maximum(values[at], dens.world(nodes[at], k))
-    return _corner_max(values, shape) * near
+    return _masked_corner_max(dens, lo, hi, near, k_values)
 
 
 @torch.no_grad()

@@ -22,16 +22,19 @@ from livescene.trainer import load_run, train  # noqa: E402
 TOY_DOOR = Articulation("hinge", np.array([0.0, 0.0, 1.0]), np.array([-0.9, 0.6, 0.0]), np.pi / 2)
 
 
+def train_toy_door(root, n_frames: int, size: tuple[int, int], steps: int) -> tuple:
+    """(run folder, summary): the toy scene trained with the door's motion (tiny preset, on the CPU)."""
+    ds = toy_dataset(root / "ds", n_frames=n_frames, size=size)
+    write_articulation(ds, {"door": TOY_DOOR}, {"source": "test"})
+    cfg = load_preset("tiny")
+    cfg.steps = steps
+    return root / "run", train(ds, root / "run", cfg, device="cpu", show_progress=False)
+
+
 @pytest.fixture(scope="module")
 def rigid_run(tmp_path_factory, one_thread):
     """The toy scene trained with the door's motion (one torch thread, ~20 s)."""
-    root = tmp_path_factory.mktemp("rigid")
-    ds = toy_dataset(root / "ds", n_frames=24, size=(40, 30))
-    write_articulation(ds, {"door": TOY_DOOR}, {"source": "test"})
-    cfg = load_preset("tiny")
-    cfg.steps = 400
-    summary = train(ds, root / "run", cfg, device="cpu", show_progress=False)
-    return root / "run", summary
+    return train_toy_door(tmp_path_factory.mktemp("rigid"), 24, (40, 30), 400)
 
 
 def test_place_reads_a_rigid_part_in_its_rest_frame():

@@ -12,12 +12,11 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_livescene_rigid import TOY_DOOR  # noqa: E402
-from test_livescene_toy import ToyScene, toy_dataset  # noqa: E402
+from test_livescene_rigid import TOY_DOOR, train_toy_door  # noqa: E402
+from test_livescene_toy import ToyScene  # noqa: E402
 
-from interreal.dataset import write_articulation  # noqa: E402
-from livescene.config import ModelConfig, load_preset  # noqa: E402
-from livescene.trainer import load_run, train  # noqa: E402
+from livescene.config import ModelConfig  # noqa: E402
+from livescene.trainer import load_run  # noqa: E402
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -27,13 +26,7 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 @pytest.fixture(scope="module")
 def rigid_run(tmp_path_factory, one_thread):
     """The toy door trained with its hinge (one torch thread, a few seconds on an idle core)."""
-    root = tmp_path_factory.mktemp("fast")
-    ds = toy_dataset(root / "ds", n_frames=16, size=(32, 24))
-    write_articulation(ds, {"door": TOY_DOOR}, {"source": "test"})
-    cfg = load_preset("tiny")
-    cfg.steps = 200
-    train(ds, root / "run", cfg, device="cpu", show_progress=False)
-    return root / "run"
+    return train_toy_door(tmp_path_factory.mktemp("fast"), 16, (32, 24), 200)[0]
 
 
 def _view(run, pos: int = 3, scale: float = 1.0):

@@ -120,18 +120,15 @@ def plot(runs: list[dict], path: Path) -> None:
             for r in rs:
                 b.annotate(r["renderer"].replace("fast ", ""), (r["seconds"], r["psnr_vs_frame"]), fontsize=6,
                            xytext=(3, 3), textcoords="offset points")
-    a.set_xscale("log")
-    a.set_xlabel("seconds per frame")
-    a.set_ylabel("PSNR of the fast render to the exact one (dB)")
-    a.set_title("fast renderer (labels: grid cell opacity threshold)")
-    a.grid(alpha=0.3)
-    a.legend(fontsize=7)
-    b.set_xscale("log")
-    b.set_xlabel("seconds per frame")
-    b.set_ylabel("PSNR to the recorded frame (dB)")
-    b.set_title("both renderers against the recorded frame")
-    b.grid(alpha=0.3)
-    b.legend(fontsize=7)
+    for ax, ylabel, title in ((a, "PSNR of the fast render to the exact one (dB)",
+                               "fast renderer (labels: grid cell opacity threshold)"),
+                              (b, "PSNR to the recorded frame (dB)", "both renderers against the recorded frame")):
+        ax.set_xscale("log")
+        ax.set_xlabel("seconds per frame")
+        ax.set_ylabel(ylabel)
+        ax.set_title(title)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

@@ -15,6 +15,7 @@ import os
 import sys
 from typing import Callable, Sequence
 
+from . import __version__
 from .errors import InterRealError
 
 PROG = "interreal"
@@ -23,13 +24,16 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("interreal.synth.cli", "simulate a phone capture of an articulated room, with full ground truth"),
     "frames": ("interreal.frames", "video / image folder / RAW folder -> DS/images (sharpest frame per window)"),
     "masks": ("interreal.masks", "propagate keyframe masks to every frame -> DS/masks"),
-    "poses": ("interreal.sfm", "pycolmap SfM on DS/images (object pixels masked out) -> transforms.json"),
+    "poses": ("interreal.sfm.cli", "pycolmap SfM on DS/images (object pixels masked out) -> transforms.json"),
     "process": ("interreal.process", "frames -> masks -> poses -> labels in one go"),
     "motions": ("interreal.motions", "measure each object's rigid motion (hinge / slide) -> DS/articulation.json"),
-    "label": ("interreal.labels", "set / unset / list / import keyframe state labels"),
+    "label": ("interreal.labels.cli", "set / unset / list / import keyframe state labels"),
     "annotate": ("interreal.annotate", "local web app: draw keyframe masks, set states, run propagation"),
-    "validate": ("interreal.dataset", "is this a loadable LiveScene dataset? exit 0 / the full list of problems"),
+    "validate": ("interreal.dataset.validation", "is this a loadable LiveScene dataset? exit 0 / the full list of problems"),
     "demo": ("interreal.demo", "the whole job on a simulated capture (or your video), end to end"),
+    "batch": ("interreal.batch", "many captures: process (and train) each as one task, on Ray or a local pool"),
+    "export-official": ("interreal.official.cli", "copy a dataset into the layout the official LiveScene trainer reads "
+                        "without NaN or rescaled labels (--check: run its reader's rules on a folder)"),
 }
 
 EPILOG = """examples:
@@ -62,8 +66,6 @@ def _run_cli(prog: str, commands: dict[str, tuple[str, str]], epilog: str, argv:
         top.print_help()
         return 0 if argv else 2
     if argv[0] == "--version":
-        from . import __version__
-
         print(f"{prog} {__version__}")
         return 0
     name = argv[0]

@@ -18,16 +18,19 @@ from pathlib import Path
 
 import numpy as np
 
+from .layout import (  # noqa: F401 - the layout's names, also reachable here as before
+    ARTICULATION_FILE,
+    IMAGES_DIR,
+    LABELS_FILE,
+    MAPPING_FILE,
+    MASKS_DIR,
+    PROMPTS_FILE,
+    REPORTS_DIR,
+    TRANSFORMS_FILE,
+)
+
 FRAME_PREFIX = "frame_"
 FRAME_DIGITS = 5
-IMAGES_DIR = "images"
-MASKS_DIR = "masks"
-REPORTS_DIR = "reports"
-TRANSFORMS_FILE = "transforms.json"
-MAPPING_FILE = "mapping.yaml"
-LABELS_FILE = "key_frame_value.yaml"
-PROMPTS_FILE = "prompts.yaml"
-ARTICULATION_FILE = "articulation.json"
 UNANNOTATED = 255  # keyframe index-mask value for "not annotated"
 
 
@@ -71,10 +74,12 @@ def index_to_onehot(index_map: np.ndarray, n_objects: int) -> np.ndarray:
 
 
 def onehot_to_index(onehot: np.ndarray) -> np.ndarray:
-    """(H, W, objects + 1) one-hot (background last) -> (H, W) uint8 index map (0 = background)."""
+    """(H, W, objects + 1) one-hot (background last) -> (H, W) uint8 index map (0 = background). A pixel with no
+    channel set (official data may have them) is UNANNOTATED, not object 0 as an argmax would say."""
     n_objects = onehot.shape[-1] - 1
     idx = np.argmax(onehot, axis=-1).astype(np.int32) + 1
     idx[idx == n_objects + 1] = 0
+    idx[~onehot.any(axis=-1)] = UNANNOTATED
     return idx.astype(np.uint8)
 
 

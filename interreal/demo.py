@@ -16,7 +16,13 @@ from typing import Any
 import numpy as np
 
 from . import atomic
+from .dataset import load_dataset, read_articulation, validate
 from .errors import DatasetError, InputError
+from .process import process
+from .report import read_report, warning_lines
+from .scoring import mask_ious, motion_errors, pose_errors
+from .synth import SynthConfig, write_capture
+from .synth.evaltruth import CaptureTruth
 
 
 @dataclass
@@ -47,8 +53,6 @@ def _row(cfg: DemoConfig, stage: str, seconds: float, quality: str) -> None:
 
 
 def simulate(cfg: DemoConfig) -> Path:
-    from .synth import SynthConfig, write_capture
-
     cap = cfg.out / "capture"
     t0 = time.perf_counter()
     if not (cap / "gt" / "meta.json").exists():
@@ -61,10 +65,6 @@ def simulate(cfg: DemoConfig) -> Path:
 
 def process_capture(cfg: DemoConfig, video: Path, keyframes: Path | None, labels: Path | None,
                     capture: Path | None) -> Path:
-    from .dataset import load_dataset, validate
-    from .process import process
-    from .report import read_report, warning_lines
-
     ds = cfg.out / "dataset"
     done = read_report(ds, "process")
     res = validate(ds) if done and done.get("status") == "ok" else None
@@ -99,9 +99,6 @@ def process_capture(cfg: DemoConfig, video: Path, keyframes: Path | None, labels
 
 def _motion_quality(ds: Path, capture: Path | None) -> str:
     """Each object's measured motion, and with a simulated capture how far it is from the true one."""
-    from .dataset import load_dataset, read_articulation
-    from .scoring import motion_errors
-
     if capture is None:
         motions = read_articulation(ds)
         return "; ".join(f"{n}: {motions[n].kind}" if n in motions else f"{n}: not measured"
@@ -118,8 +115,6 @@ def _motion_quality(ds: Path, capture: Path | None) -> str:
 
 def _mask_summary(ds: Path) -> str:
     """Without truth: what the masks stage itself measured (its confidence; its warnings are printed too)."""
-    from .report import read_report
-
     report = read_report(ds, "masks") or {}
     fig = report.get("figures", {})
     conf = ", ".join(f"{n} {v:.2f}" for n, v in fig.get("confidence_mean", {}).items())
@@ -129,15 +124,11 @@ def _mask_summary(ds: Path) -> str:
 
 
 def _pose_quality(ds: Path, capture: Path) -> str:
-    from .scoring import pose_errors
-
     c = pose_errors(ds, capture)
     return f"rot err median {c['rot_err_deg_median']:.3f} deg, centre err {c['center_err_pct_median']:.2f} % of path"
 
 
 def _mask_quality(ds: Path, capture: Path) -> str:
-    from .scoring import mask_ious
-
     return "mask IoU " + ", ".join(f"{n} {v:.3f}" for n, v in mask_ious(ds, capture).items())
 
 
@@ -150,8 +141,6 @@ def train_run(cfg: DemoConfig, ds: Path) -> Path:
     tc = load_preset(cfg.preset)
     if cfg.steps:
         tc.steps = cfg.steps
-    from .report import read_report
-
     done = read_report(run, "train")
     if done and done.get("status") == "ok":  # a finished run: reuse it (re-running would train further)
         summary = done.get("figures", {})
@@ -164,7 +153,7 @@ def train_run(cfg: DemoConfig, ds: Path) -> Path:
 
 
 def evaluate_run(cfg: DemoConfig, run_dir: Path, capture: Path | None) -> dict[str, Any]:
-    from livescene.evaluate import CaptureTruth, evaluate
+    from livescene.evaluate import evaluate
     from livescene.trainer import load_run
 
     t0 = time.perf_counter()
@@ -179,6 +168,10 @@ def evaluate_run(cfg: DemoConfig, run_dir: Path, capture: Path | None) -> dict[s
     if truth is None:
         q += " (against the held-out video frames and the propagated masks; no truth)"
     _row(cfg, "eval", time.perf_counter() - t0, q)
+    from livescene.unseen import support_lines
+
+    for line in support_lines(res.get("unsupported") or []):  # states a part without a measured motion never showed
+        print(f"[demo] {line}", flush=True)
     return res
 
 

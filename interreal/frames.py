@@ -15,9 +15,10 @@ from __future__ import annotations
 import shutil
 import sys
 import time
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import cv2
 import numpy as np
@@ -26,6 +27,7 @@ from . import atomic
 from .conventions import IMAGES_DIR, frame_name
 from .errors import InputError
 from .ingest import Source, open_source
+from .options import add_flags, config_from, option, values_from_args
 from .provenance import source_key
 from .report import StageReport, finished_with, fingerprint, tree_fingerprint
 
@@ -45,6 +47,18 @@ class FrameStats:
     def usable(self) -> np.ndarray:
         """Not black, not blank, with texture a feature detector can use."""
         return (self.brightness > 8) & (self.corners >= 25) & (self.sharpness > 2.0)
+
+
+@dataclass
+class FramesConfig:
+    """Settings of one `interreal frames` run: its flags (and `interreal process`'s) and `extract_frames`'s keyword
+    options; they all enter the resume fingerprint."""
+
+    target: int | None = option(None, f"number of frames to select (video default {DEFAULT_VIDEO_TARGET}; folders "
+                                      "keep every image unless given)", exclusive="count")
+    every: int | None = option(None, "one frame (the sharpest) per EVERY source frames", exclusive="count")
+    long_side: int = option(1600, "working size: long side of written images")
+    keep: tuple[int, ...] = option((), "source indices that must be selected", nargs="*")
 
 
 @dataclass
@@ -154,9 +168,9 @@ def _finished_images(ds: Path, key: str) -> list[Path] | None:
     return paths if paths and present == {p.name for p in paths} else None
 
 
-def extract_frames(source: str | Path, ds: str | Path, *, target: int | None = None, every: int | None = None,
-                   long_side: int = 1600, keep: Iterable[int] = (), report: bool = True) -> list[Path]:
-    """Select frames from a video / image folder / RAW folder and write DS/images/frame_<index>.png.
+def extract_frames(source: str | Path, ds: str | Path, *, report: bool = True, **opts: Any) -> list[Path]:
+    """Select frames from a video / image folder / RAW folder and write DS/images/frame_<index>.png; `opts`: the
+    `FramesConfig` fields (target, every, long_side, keep; None = the default).
 
     The new images/ folder is built beside the old one and swapped in at the end, so a failed run leaves the
     dataset as it was. A finished run from the same source files and settings is reused (its images keep their
@@ -164,11 +178,13 @@ def extract_frames(source: str | Path, ds: str | Path, *, target: int | None = N
     index order.
     """
     ds = Path(ds)
+    opt = config_from(FramesConfig, opts, "frames")
+    target, every, long_side = opt.target, opt.every, opt.long_side
     if target is not None and target < 3:
         raise InputError(f"--target {target}: at least 3 frames are needed for poses")
     if every is not None and every < 1:
         raise InputError(f"--every {every} must be >= 1")
-    keep = sorted(set(int(k) for k in keep))
+    keep = sorted(set(int(k) for k in opt.keep))
     settings = {"target": target, "every": every, "long_side": long_side, "keep": keep}
     ds.mkdir(parents=True, exist_ok=True)
     source_fp = tree_fingerprint(Path(source))
@@ -288,8 +304,6 @@ class _Null:
 
 
 def _step(rep: StageReport | None, name: str):
-    from contextlib import nullcontext
-
     return rep.step(name) if rep is not None else nullcontext({})
 
 
@@ -299,20 +313,19 @@ def _step(rep: StageReport | None, name: str):
 def add_arguments(p) -> None:
     p.add_argument("input", type=Path, help="video file (mp4/mov), image folder, or RAW folder (DNG, CR2, NEF, ...)")
     p.add_argument("dataset", type=Path, help="dataset folder; frames go to DATASET/images/")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--target", type=int, help=f"number of frames to select (video default {DEFAULT_VIDEO_TARGET}; "
-                                              "folders keep every image unless given)")
-    g.add_argument("--every", type=int, help="one frame (the sharpest) per EVERY source frames")
-    p.add_argument("--long-side", type=int, default=1600, help="working size: long side of written images (default 1600)")
-    p.add_argument("--keep", type=int, nargs="*", default=[], help="source indices that must be selected")
+    add_flags(p, FramesConfig)
     p.epilog = ("examples:\n  interreal frames room.mp4 out/room                 # 300 sharpest frames, motion-aware\n"
                 "  interreal frames room.mp4 out/room --target 150 --long-side 1280\n"
                 "  interreal frames photos/ out/room                   # every photo, format sniffed from content\n"
                 "  interreal frames raw_dng/ out/room --every 2        # RAW with one white balance for all")
 
 
+def frames_options(args) -> dict[str, Any]:
+    """`extract_frames` options from the parsed flags of `FramesConfig` (its default when not given)."""
+    return values_from_args(FramesConfig, args)
+
+
 def main(args) -> int:
-    paths = extract_frames(args.input, args.dataset, target=args.target, every=args.every,
-                           long_side=args.long_side, keep=args.keep)
+    paths = extract_frames(args.input, args.dataset, **frames_options(args))
     print(f"{len(paths)} frames -> {args.dataset / IMAGES_DIR} (report: {args.dataset}/reports/frames.json)")
     return 0

@@ -16,9 +16,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Iterator
 
+import av
 import cv2
 import numpy as np
+import rawpy
+from PIL import Image
+from tqdm import tqdm
 
+from .dataset import decode_image as decode_file
 from .errors import InputError
 
 VIDEO_SUFFIXES = {".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm", ".3gp", ".mts", ".m2ts"}
@@ -95,8 +100,6 @@ class Source:
 
 
 def _bar(total: int | None, desc: str | None):
-    from tqdm import tqdm
-
     return tqdm(total=total, desc=desc, unit="frame", disable=desc is None, leave=False)
 
 
@@ -105,8 +108,6 @@ def _bar(total: int | None, desc: str | None):
 # ----------------------------------------------------------------------------------------------------------------
 class VideoSource(Source):
     def __init__(self, path: Path):
-        import av
-
         self.path = path
         if path.stat().st_size == 0:
             raise InputError(f"{path} is empty (0 bytes): copy the video from the phone again")
@@ -134,8 +135,6 @@ class VideoSource(Source):
         self.info = SourceInfo("video", str(path), declared, w, h, fps=fps, rotation=self.rotation)
 
     def frames(self, indices=None, long_side=None, progress=None):
-        import av
-
         wanted = None if indices is None else set(int(i) for i in indices)
         last = max(wanted) if wanted else None
         k = (round(self.rotation / 90) % 4) if self.rotation else 0
@@ -195,8 +194,7 @@ def _frame_rotation(frame, metadata) -> int:
 # ----------------------------------------------------------------------------------------------------------------
 def decode_image(path: Path) -> np.ndarray:
     """RGB uint8, EXIF orientation applied; the format is detected from the bytes, whatever the extension says."""
-    data = np.fromfile(str(path), dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    img = decode_file(path, cv2.IMREAD_COLOR)  # IMREAD_COLOR applies the EXIF orientation
     if img is None:
         raise InputError(f"{path} cannot be decoded: the file is truncated or not an image; remove or replace it")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
@@ -205,8 +203,6 @@ def decode_image(path: Path) -> np.ndarray:
 def _upright_size(path: Path) -> tuple[int, int] | None:
     """(w, h) after EXIF rotation, from the header only; None when the header is unreadable."""
     try:
-        from PIL import Image
-
         with Image.open(path) as im:
             w, h = im.size
             orient = im.getexif().get(274, 1)
@@ -296,8 +292,6 @@ class RawFolderSource(Source):
 
     @staticmethod
     def _open(path: Path):
-        import rawpy
-
         try:
             return rawpy.imread(str(path))
         except (rawpy.LibRawFileUnsupportedError, rawpy.LibRawDataError, rawpy.LibRawIOError,
@@ -306,8 +300,6 @@ class RawFolderSource(Source):
                              "convert it to DNG/TIFF/JPEG first") from exc
 
     def _develop_linear(self, path: Path, half: bool) -> np.ndarray:
-        import rawpy
-
         with self._open(path) as raw:
             try:
                 rgb = raw.postprocess(user_wb=self.wb, no_auto_bright=True, gamma=(1, 1), output_bps=16,

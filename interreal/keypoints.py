@@ -31,6 +31,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import pycolmap
 
 from .errors import StageError
 
@@ -217,8 +218,6 @@ def extend_tracks(rec, image_dir: Path, mask_dir: Path | None = None, *, window:
     Candidates are aligned in batches of consecutive views of up to `batch` candidates (each holds two image
     blocks, ~0.5 KB), so memory stays bounded on long captures; a view's candidates are never split.
     Run a bundle adjustment after. bar: advanced once per view. Returns counts for the report."""
-    import pycolmap
-
     t0 = time.perf_counter()
     ids, tracks = _sorted_tracks(rec)
     tracks = {pid: els for pid, els in tracks.items() if els and els[0][0] >= 0}

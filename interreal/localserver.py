@@ -21,12 +21,18 @@ import ipaddress
 import logging
 import secrets
 import socket
+import struct
 import threading
 import time
 import traceback
 from pathlib import Path
 from typing import Any, Awaitable, Callable, TypeVar
 from urllib.parse import parse_qs, unquote
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not on Windows: interface addresses come from /proc only
+    fcntl = None  # type: ignore[assignment]
 
 log = logging.getLogger("interreal.localserver")
 
@@ -100,9 +106,6 @@ def _interface_addresses() -> set[str]:
     """IPv4 addresses of every network interface (Linux ioctl) and IPv6 ones from /proc; empty elsewhere."""
     out: set[str] = set()
     try:
-        import fcntl
-        import struct
-
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             for _, name in socket.if_nameindex():
                 try:

@@ -7,18 +7,18 @@ the annotations are forced into the selection so every annotated frame survives.
 
 from __future__ import annotations
 
-import csv
 import importlib
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterable
-
-import yaml
+from typing import Any, Callable
 
 from . import provenance
 from .conventions import frame_index
 from .errors import InputError, StageError
-from .frames import extract_frames
+from .frames import FramesConfig, extract_frames, frames_options
+from .masks.config import MasksConfig
+from .options import add_flags, options_of, values_from_args
+from .labels import add_unit_arguments, parse_range, read_label_file
 from .report import StageReport, read_report, warning_lines
 from .sfm import add_sfm_options, estimate_poses, sfm_options, summary_lines
 
@@ -42,27 +42,14 @@ def keyframe_indices(keyframes_dir: Path) -> list[int]:
 
 
 def label_indices(labels_file: Path) -> list[int]:
-    """Source indices of the frames a labels file (key_frame_value YAML, or CSV with the frame first) names."""
-    if not labels_file.is_file():
-        raise InputError(f"--labels {labels_file} does not exist")
-    keys: Iterable[Any]
-    if labels_file.suffix.lower() == ".csv":
-        with open(labels_file, newline="", encoding="utf-8") as fh:
-            keys = [row[0] for row in csv.reader(fh) if row]
-    else:
-        try:
-            raw = yaml.safe_load(labels_file.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise InputError(f"--labels {labels_file} is not valid YAML ({exc})") from exc
-        if not isinstance(raw, dict):
-            raise InputError(f"--labels {labels_file}: expected {{frame_00042: {{object: value}}}}")
-        keys = raw.keys()
+    """Source indices of the frames a labels file (key_frame_value YAML, or CSV frame,object,value) names, read
+    by the parser `interreal label --import` uses."""
     out = []
-    for k in keys:
+    for row in read_label_file(labels_file):
         try:
-            out.append(frame_index(str(k)))
+            out.append(frame_index(str(row["frame"])))
         except ValueError:
-            continue  # a CSV header
+            continue  # not a frame name: `import_labels` will name the row
     return sorted(set(out))
 
 
@@ -82,16 +69,20 @@ def _stage_fn(module: str, name: str, flag: str) -> Callable[..., Any]:
 
 
 def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None = None,
-            labels: str | Path | None = None, target: int | None = None, every: int | None = None,
-            long_side: int = 1600, motions: bool = True, degrees: Any = None, cm: Any = None,
-            **sfm: Any) -> dict[str, Any]:
+            labels: str | Path | None = None, motions: bool = True, degrees: Any = None, cm: Any = None,
+            **opts: Any) -> dict[str, Any]:
     """Run the stages in order; each writes its own reports/<stage>.json, and reports/process.json collects their
     warnings. Returns the pose figures. With masks and labels, `motions` also measures each object's rigid motion
-    (`interreal motions`). degrees / cm: physical label values, as `interreal label --degrees / --cm`."""
+    (`interreal motions`). degrees / cm: physical label values, as `interreal label --degrees / --cm`.
+
+    `opts`: the fields of `FramesConfig` (target, every, long_side, keep), of `MasksConfig` (work_long_side, flow,
+    ...) and of `SfMConfig` (the rest; an unknown name is an InputError of the poses stage)."""
     ds = Path(ds)
+    frames_opts, masks_opts = options_of(FramesConfig, opts), options_of(MasksConfig, opts)
+    sfm = {k: v for k, v in opts.items() if k not in frames_opts and k not in masks_opts}
     if (degrees is not None or cm is not None) and labels is None:
         raise InputError("--degrees / --cm give the range of --labels values: add --labels FILE, or drop them")
-    keep: set[int] = set()
+    keep: set[int] = {int(k) for k in frames_opts.pop("keep", None) or ()}
     if keyframes is not None:
         keep |= set(keyframe_indices(Path(keyframes)))
     if labels is not None:
@@ -100,16 +91,13 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
     propagate = _stage_fn("interreal.masks", "propagate", "--keyframes") if keyframes is not None else None
     import_labels = _stage_fn("interreal.labels", "import_labels", "--labels") if labels is not None else None
     if import_labels is not None and (degrees is not None or cm is not None):
-        from .labels import parse_range
-
         parse_range(degrees, "degrees"), parse_range(cm, "cm")  # a malformed range fails now, not after SfM
     settings = {"keyframes": str(keyframes) if keyframes else None, "labels": str(labels) if labels else None,
-                "target": target, "every": every, "long_side": long_side, "motions": motions,
-                "degrees": degrees, "cm": cm, **sfm}
+                **frames_opts, "motions": motions, "degrees": degrees, "cm": cm, **masks_opts, **sfm}
     ds.mkdir(parents=True, exist_ok=True)
     with StageReport(ds, "process", inputs={"source": str(source)}, settings=settings) as rep:
         with rep.step("frames") as st:
-            paths = extract_frames(source, ds, target=target, every=every, long_side=long_side, keep=sorted(keep))
+            paths = extract_frames(source, ds, keep=sorted(keep), **frames_opts)
             st["frames"] = len(paths)
         _collect_warnings(rep, ds, "frames")
         # a stage not asked for but already in the dataset runs again when its inputs changed (new frames, ...)
@@ -118,7 +106,7 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
             propagate = propagate or _stage_fn("interreal.masks", "propagate", "--keyframes")
             with rep.step("masks") as st:
                 st["keyframes"] = str(kf_dir)
-                propagate(ds, kf_dir)
+                propagate(ds, kf_dir, **masks_opts)
             _collect_warnings(rep, ds, "masks")
         with rep.step("poses"):
             fig = estimate_poses(ds, **sfm)
@@ -133,8 +121,7 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
             _collect_warnings(rep, ds, "labels")
         had_motions = read_report(ds, "motions") is not None
         if motions and ((kf_dir is not None and import_labels is not None) or had_motions):
-            from .motions import estimate_motions
-
+            estimate_motions = _stage_fn("interreal.motions", "estimate_motions", "--motions")
             with rep.step("motions") as st:
                 st.update(estimate_motions(ds))
             _collect_warnings(rep, ds, "motions")
@@ -197,20 +184,16 @@ def _stale_keyframes(ds: Path) -> Path | None:
 
 
 def add_arguments(p) -> None:
-    from .labels import add_unit_arguments
-
     p.add_argument("input", type=Path, help="video file, image folder or RAW folder")
     p.add_argument("dataset", type=Path, help="dataset folder to create / update")
     p.add_argument("--keyframes", type=Path, help="keyframe masks folder (00042.png index masks or LabelMe .json)")
     p.add_argument("--labels", type=Path, help="keyframe states (key_frame_value.yaml format, or CSV)")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--target", type=int, help="number of frames to select (video default 300)")
-    g.add_argument("--every", type=int, help="one frame (the sharpest) per EVERY source frames")
-    p.add_argument("--long-side", type=int, default=1600, help="long side of the training images (default 1600)")
+    add_flags(p.add_argument_group("frames"), FramesConfig)
     p.add_argument("--no-motions", dest="motions", action="store_false",
                    help="with --keyframes and --labels: skip measuring each object's rigid motion")
     add_unit_arguments(p)
-    add_sfm_options(p)
+    add_flags(p.add_argument_group("masks (with --keyframes)"), MasksConfig)
+    add_sfm_options(p.add_argument_group("poses"))
     p.epilog = ("examples:\n  interreal process room.mp4 out/room\n"
                 "  interreal process cap/video.mp4 out/ds --keyframes cap/annotations/keyframes \\\n"
                 "      --labels cap/annotations/states.yaml --target 200\n"
@@ -219,9 +202,9 @@ def add_arguments(p) -> None:
 
 def main(args) -> int:
     t0 = time.perf_counter()
-    fig = process(args.input, args.dataset, keyframes=args.keyframes, labels=args.labels, target=args.target,
-                  every=args.every, long_side=args.long_side, motions=args.motions, degrees=args.degrees,
-                  cm=args.cm, **sfm_options(args))
+    fig = process(args.input, args.dataset, keyframes=args.keyframes, labels=args.labels, motions=args.motions,
+                  degrees=args.degrees, cm=args.cm, **frames_options(args), **values_from_args(MasksConfig, args),
+                  **sfm_options(args))
     ran = list((read_report(args.dataset, "process") or {}).get("steps", {}))
     lines: list[str] = []
     for stage in ran:  # each stage that ran: what it made, then its warnings

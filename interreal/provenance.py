@@ -20,20 +20,25 @@ from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from .conventions import IMAGES_DIR, LABELS_FILE, MAPPING_FILE, MASKS_DIR, TRANSFORMS_FILE
+from . import atomic
+from .images import list_images
+from .layout import SFM_MASKS_DIR
+from .report import read_report, report_path
 
 # stages in the order they run; each may depend on the outputs of the ones before it
 STAGES = ("frames", "masks", "poses", "labels", "motions")
 # input kinds each stage's outputs are (a stage downstream of a stale one is stale too)
 OUTPUTS: dict[str, tuple[str, ...]] = {
     "frames": ("images", "capture"),
-    "masks": ("masks", "sfm_masks"),
+    "masks": ("masks", "sfm_masks", "transients"),
     "poses": ("transforms",),
     "labels": ("labels", "mapping"),
     "motions": (),
 }
-MOTION_INPUTS = ("transforms", "labels", "masks", "mapping")  # what `interreal motions` reads
+MOTION_INPUTS = ("transforms", "labels", "masks", "mapping", "transients")  # what `interreal motions` reads
 WHAT = {  # "<stage> were computed from ..."
-    "images": "other images", "masks": "other masks", "sfm_masks": "other masks", "transforms": "other poses",
+    "images": "other images", "masks": "other masks", "sfm_masks": "other masks",
+    "transients": "other transient masks", "transforms": "other poses",
     "labels": "other labels", "mapping": "another object list (mapping.yaml)", "keyframes": "other keyframes",
     "capture": "the frames of another capture (video or folder)",
 }
@@ -43,7 +48,6 @@ SOURCE_SAMPLE = 1 << 20  # bytes hashed at each end of a source video / file to 
 
 
 def _image_files(ds: Path) -> list[Path]:
-    from .dataset import list_images
 
     return list_images(ds / IMAGES_DIR)
 
@@ -62,7 +66,8 @@ def _one(name: str) -> Callable[[Path], list[Path]]:
 FILES: dict[str, Callable[[Path], list[Path]]] = {
     "images": _image_files,
     "masks": _glob(MASKS_DIR, "*.npy"),
-    "sfm_masks": _glob("sfm_masks", "*.png"),
+    "sfm_masks": _glob(SFM_MASKS_DIR, "*.png"),
+    "transients": _glob("transients", "*.png"),  # interreal.transients
     "transforms": _one(TRANSFORMS_FILE),
     "labels": _one(LABELS_FILE),
     "mapping": _one(MAPPING_FILE),
@@ -124,7 +129,6 @@ def _keyframe_files(folder: Path) -> list[Path]:
 
 def _capture(ds: Path) -> str | None:
     """The frames' capture: the source key `interreal frames` recorded (None without a finished frames report)."""
-    from .report import read_report
 
     rep = read_report(ds, "frames") or {}
     fp = ((rep.get("inputs") or {}).get("fingerprints") or {}).get("source") if isinstance(rep, dict) else None
@@ -243,7 +247,6 @@ def rerun_hint(ds: Path, stage: str, rep: dict | None = None) -> str:
 
 def stale_stages(ds: str | Path) -> list[Stale]:
     """Every finished stage whose recorded inputs changed since it ran, then those computed from a stale stage."""
-    from .report import read_report
 
     ds = Path(ds)
     cur = _Current(ds)
@@ -282,8 +285,6 @@ def refresh(ds: str | Path, stage: str, kinds: Iterable[str]) -> None:
     """Record the current fingerprints of `kinds` in a stage's report after an edit known to keep its outputs valid
     (renaming an object rewrites keyframe annotations without changing a mask). Call it only when `unchanged` said
     so before the edit, so a real change is never hidden."""
-    from . import atomic
-    from .report import read_report, report_path
 
     ds = Path(ds)
     rep = read_report(ds, stage)
@@ -306,7 +307,6 @@ def refresh(ds: str | Path, stage: str, kinds: Iterable[str]) -> None:
 def unchanged(ds: str | Path, stage: str, kinds: Iterable[str]) -> bool:
     """Whether none of `kinds` changed since `stage` last ran (False without a finished report)."""
     ds = Path(ds)
-    from .report import read_report
 
     rep = read_report(ds, stage)
     fps = recorded(rep)

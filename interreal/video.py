@@ -6,6 +6,7 @@ from fractions import Fraction
 from pathlib import Path
 from typing import Iterable
 
+import av
 import numpy as np
 
 
@@ -16,8 +17,6 @@ class VideoWriter:
 
     def __init__(self, path: str | Path, width: int, height: int, fps: float = 30.0, crf: int = 18,
                  preset: str = "veryfast"):
-        import av
-
         self._av = av
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)

@@ -12,9 +12,14 @@ until the near plane came from the SfM points (`SamplerConfig.near_auto`): 26.4 
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import torch
+from scipy.ndimage import binary_dilation
 from torch import nn
+
+from interreal.conventions import opengl_to_opencv
+from interreal.dataset import known_states
 
 KIND_CODES = {"hinge": 1, "slide": 2}  # 0: the object has no rigid motion (the k-axis alone moves it)
 HULL_RES = 64  # cells along each axis of a part's rest-frame hull box
@@ -120,8 +125,6 @@ def _hull_votes(cells: np.ndarray, motion, frames: list[int], states: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Per rest-frame point (P, 3): views showing the part there, views showing the part or the background there.
     Other objects are no evidence (they may stand in front of the part)."""
-    import cv2
-
     inside = np.zeros(len(cells), np.int32)
     seen = np.zeros(len(cells), np.int32)
     h, w = masks.shape[1:]
@@ -145,8 +148,6 @@ def _hull_votes(cells: np.ndarray, motion, frames: list[int], states: np.ndarray
 
 def _grown(masks: np.ndarray, frames: list[int], obj: int, share: float) -> np.ndarray:
     """The label maps with object `obj`'s pixels grown by `share` of the width (only `frames` are filled)."""
-    import cv2
-
     r = max(1, int(round(share * masks.shape[2])))
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
     out = np.full_like(masks, 255)
@@ -169,8 +170,6 @@ def carve_hull(motion, obj: int, n_objects: int, frames: list[int], states: np.n
     A cell is the part's when most views that see the part or the background where the cell projects (at each
     view's own state) see the part: a visual hull that tolerates a few wrong mask pixels. Coarse over the scene
     box first, then at `res` over the box of what the coarse pass kept."""
-    from scipy.ndimage import binary_dilation
-
     lo, hi = np.asarray(box[0], float), np.asarray(box[1], float)
     frames = [f for f in frames if (masks[f] == obj).sum() >= HULL_MIN_PIXELS]
     if len(frames) > HULL_MAX_VIEWS:
@@ -195,11 +194,6 @@ def fit_hulls(motions: PartMotions, articulation: list, views, masks: np.ndarray
     """Carve every rigid part's hull from the training frames whose state is known before training
     (`known_states`) and gate the part to it. masks (N, H, W) class ids (objects 0..M-1, background M, 255
     unknown) at the views' working size. Returns per object name: cells kept and views used (None: no hull)."""
-    import cv2
-
-    from interreal.conventions import opengl_to_opencv
-    from interreal.dataset import known_states
-
     n = len(views.names)
     states, known = known_states(views.times, views.labels, views.given)  # held-out labels left out
     cams = []

@@ -1,22 +1,18 @@
-"""`livescene` command line: train, render, eval, ground (each subcommand owned by its module)."""
+"""`livescene` command line: dispatches to the command modules of `livescene.commands` (the table there)."""
 
 from __future__ import annotations
 
+import os
 import sys
 from typing import Sequence
 
 from interreal.cli import run_cli
 from interreal.errors import InterRealError
 
+from .commands import COMMANDS
 from .errors import WRITE_ERRNOS, describe_write_error
 
-COMMANDS: dict[str, tuple[str, str]] = {
-    "train": ("livescene.trainer", "fit the interactive radiance field to a dataset (progress, checkpoints, resume)"),
-    "render": ("livescene.render", "render images / videos at chosen object states and cameras"),
-    "eval": ("livescene.evaluate", "PSNR, SSIM, depth L1, state error, mask IoU, novel-state PSNR -> JSON"),
-    "ground": ("livescene.language", "find an object by text and render its mask in any view"),
-    "view": ("livescene.viewer", "local browser viewer: orbit / fly camera, a slider per object, save views"),
-}
+__all__ = ["COMMANDS", "main"]
 
 EPILOG = """examples:
   livescene train out/ds --out out/run --preset cpu
@@ -24,6 +20,7 @@ EPILOG = """examples:
   livescene eval out/run --gt out/cap --out out/eval.json
   livescene ground out/run "the thing that keeps food cold" --out out/ground
   livescene view out/run                       # prints a http://127.0.0.1:PORT/?token=... URL to open
+  livescene export out/run --format urdf --out out/asset   # URDF: a link per object, joints from its motion
 Run `livescene COMMAND --help` for each command's options and examples."""
 
 
@@ -32,8 +29,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return run_cli("livescene", COMMANDS, EPILOG, args, (InterRealError,))
     except BrokenPipeError:  # `livescene ground ... | head`: the reader left, nothing to report
-        import os
-
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
     except OSError as exc:  # a write the command did not wrap itself: still one line, never a traceback

@@ -3,6 +3,7 @@
 A value of 0 for a resolution means "follow the scene" (`resolve_sizes`): plane resolutions come from the image
 size, focal length and scene extent, the interaction axis and the per-frame variable from the frame count. The
 parameter count never depends on the number of objects (a fixed number of object slots, `max_objects`).
+`resolve(cfg, views)` is the one place a configuration meets its scene (sizes, near plane, object slots).
 """
 
 from __future__ import annotations
@@ -10,10 +11,11 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import sys
 import typing
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import yaml
 
@@ -118,6 +120,7 @@ class TrainConfig:
     keep_checkpoints: int = 3
     holdout_every: int = 8  # every 8th frame is held out, never trained on
     holdout_offset: int = 4
+    split: str = "ours"  # "official": hold out the official LiveScene eval frames instead (interreal.official)
     max_side: int = 0  # downscale images so the longer side is at most this (0 = as stored)
     eval_max_side: int = 160  # size of the periodic held-out eval render
     final_eval_frames: int = 4  # held-out frames averaged for the end-of-run PSNR (the low-fit warning reads it)
@@ -209,6 +212,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "model.motion": ("auto", "rigid", "none"),
     "model.part_k": ("rest", "state"),
     "model.background": ("white", "black", "learned"),
+    "split": ("ours", "official"),
 }
 _POS, _NONNEG, _ONE, _UNIT = (0.0, None, True), (0.0, None, False), (1.0, None, False), (0.0, 1.0, False)
 RANGES: dict[str, tuple[float | None, float | None, bool]] = {  # path: (low, high, low excluded)
@@ -385,3 +389,34 @@ def resolve_sizes(cfg: ModelConfig, scene: SceneInfo) -> ModelConfig:
     if out.var_resolution <= 0:
         out.var_resolution = max(2, scene.n_frames // 2)
     return out
+
+
+class SceneViews(Protocol):
+    """What `resolve` reads of a dataset's views (`livescene.data.Views`)."""
+
+    @property
+    def n_objects(self) -> int: ...
+
+    def scene_info(self) -> SceneInfo: ...
+
+    def closest_depth(self) -> float | None: ...  # nearest SfM point any camera sees (None: no point cloud)
+
+
+def resolve(cfg: TrainConfig, views: SceneViews) -> TrainConfig:
+    """A copy of `cfg` with everything that follows the scene made concrete: the `0 = auto` sizes
+    (`resolve_sizes`), the near plane (`sampler.near_auto` x the closest point depth, never below `near`) and
+    enough object slots for the scene's objects. Resolving a resolved config changes nothing."""
+    cfg = from_dict(cfg.to_dict())
+    cfg.model = resolve_sizes(cfg.model, views.scene_info())
+    if cfg.sampler.near_auto > 0:
+        closest = views.closest_depth()
+        if closest is not None:
+            cfg.sampler.near = max(cfg.sampler.near, round(cfg.sampler.near_auto * closest, 4))
+    n = views.n_objects
+    if n > cfg.model.max_objects:
+        # more objects than slots: widen the slots (only the probability field's and the variable's input and
+        # output layers grow, a few hundred parameters per object) rather than refuse the scene
+        print(f"livescene train: {n} objects > {cfg.model.max_objects} object slots: using {n} slots",
+              file=sys.stderr)
+        cfg.model.max_objects = n
+    return cfg

@@ -7,18 +7,29 @@
 - Split: every `holdout_every`-th frame (by position, from `holdout_offset`) is held out and never trained on,
   labels included.
 - Frame time: source frame index / largest index, the coordinate of the per-frame variable.
+- Transients (`DS/transients/<fid>.png`, `interreal.transients`: people, hands): their pixels are never drawn as
+  training rays, so no loss (colour, probability field, proposal) sees them and the static scene is not fitted to
+  a hand; their class is unknown (255) in the masks the trainer reads.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
+import yaml
+from tqdm import tqdm
 
-from interreal.conventions import onehot_to_index, opengl_to_opencv
-from interreal.dataset import Intrinsics, LiveSceneDataset, load_dataset
+from interreal.conventions import UNANNOTATED, mask_file, onehot_to_index, opengl_to_opencv
+from interreal.dataset import (Intrinsics, LiveSceneDataset, format_problems, load_dataset, read_point_cloud,
+                               validate)
+from interreal.official import official_positions
+from interreal.transients import read_transient
 
 from .config import SceneInfo, TrainConfig
 from .errors import InvalidDatasetError, LiveSceneError
@@ -31,8 +42,6 @@ UNKNOWN = 255
 # ----------------------------------------------------------------------------------------------------------------
 def pixel_directions(intr: Intrinsics) -> np.ndarray:
     """Unit-z camera-frame directions (H, W, 3) (OpenCV axes) of pixel centres, distortion removed."""
-    import cv2
-
     if intr.camera_model == "OPENCV_FISHEYE":
         raise LiveSceneError("OPENCV_FISHEYE cameras are not supported: undistort the images first")
     u, v = np.meshgrid(np.arange(intr.w, dtype=np.float64) + 0.5, np.arange(intr.h, dtype=np.float64) + 0.5)
@@ -95,21 +104,10 @@ def check_intrinsics(intr: Intrinsics, where: str, max_pixels: int = 64_000_000)
 # Scene box
 # ----------------------------------------------------------------------------------------------------------------
 def sparse_points(ds: LiveSceneDataset) -> np.ndarray | None:
-    """(P, 3) the SfM point cloud (`sparse_pc.ply`); None when it is missing, broken or nearly empty."""
-    ply = ds.root / "sparse_pc.ply"
-    return _read_ply_points(ply) if ply.exists() else None
-
-
-def _read_ply_points(path: Path) -> np.ndarray | None:
-    try:
-        import trimesh
-
-        pc = trimesh.load(str(path))
-        pts = np.asarray(getattr(pc, "vertices", []), dtype=np.float64).reshape(-1, 3)
-        pts = pts[np.isfinite(pts).all(axis=1)]  # a NaN point would make the box NaN
-        return pts if len(pts) >= 10 else None
-    except Exception:  # noqa: BLE001 - a broken point cloud only loses the better box
-        return None
+    """(P, 3) the SfM point cloud (transforms.json's `ply_file_path`, else `sparse_pc.ply`); None when it is missing,
+    broken or nearly empty."""
+    pts = read_point_cloud(ds.root, ds.extra)
+    return pts if pts is not None and len(pts) >= 10 else None
 
 
 def scene_box(ds: LiveSceneDataset) -> tuple[np.ndarray, np.ndarray, str]:
@@ -167,10 +165,6 @@ def require_valid(path: str | Path, check_masks: bool = True) -> None:
 
     One exception: a dataset with no masks at all is accepted (the colour field trains; grounding and mask figures
     then say the run has no masks); some frames without a mask is an error."""
-    import dataclasses
-
-    from interreal.dataset import format_problems, validate
-
     result = validate(path, check_masks=check_masks)
     problems = result.problems
     missing = [p for p in problems if p.kind == "missing-mask"]
@@ -186,8 +180,6 @@ def require_valid_run_dataset(run_dir: str | Path, command: str) -> Path | None:
     """Validate the dataset a run folder names (RUN/config.yaml 'dataset') before a command reads the run; the
     path, or None when the run names none. A dataset that is gone only warns: what the command can do without it
     (grounding by object name) still works, what needs it (rendering) says so when it loads the run."""
-    import yaml
-
     cfg_path = Path(run_dir) / "config.yaml"
     if not cfg_path.exists():
         return None
@@ -201,8 +193,6 @@ def require_valid_run_dataset(run_dir: str | Path, command: str) -> Path | None:
         return None
     path = Path(str(ds))
     if not path.exists():
-        import sys
-
         print(f"livescene {command}: warning: the run's dataset {path} is gone (moved or deleted); commands that "
               f"render need it (--dataset NEW_PATH where offered)", file=sys.stderr)
         return None
@@ -274,8 +264,6 @@ def frame_times(ds: LiveSceneDataset) -> np.ndarray:
 
 
 def _resize(img: np.ndarray, w: int, h: int, nearest: bool) -> np.ndarray:
-    import cv2
-
     if img.shape[1] == w and img.shape[0] == h:
         return img
     return cv2.resize(img, (w, h), interpolation=cv2.INTER_NEAREST if nearest else cv2.INTER_AREA)
@@ -300,6 +288,14 @@ class Views:
     @property
     def names(self) -> list[str]:
         return self.dataset.object_names
+
+    @property
+    def n_objects(self) -> int:
+        return self.dataset.n_objects
+
+    def closest_depth(self) -> float | None:
+        """`closest_point_depth` of these cameras (what `config.resolve` sets the near plane from)."""
+        return closest_point_depth(self.dataset, self.c2w_gl, self.intrinsics)
 
     def scene_info(self) -> SceneInfo:
         intr = self.intrinsics[0]
@@ -343,7 +339,10 @@ def load_views(path: str | Path, cfg: TrainConfig, check_masks: bool = True) -> 
         intrs.append(base.scaled(w, h) if (w, h) != (base.w, base.h) else base)
     labels, given = ds.label_matrix()
     raw_labels = labels
-    train, held = split_indices(len(ds.frames), cfg.holdout_every, cfg.holdout_offset)
+    if cfg.split == "official":  # the paper's split, so figures compare with its (interreal.official)
+        train, held = official_positions(ds.layout, ds.extra, [f.file_path for f in ds.frames])
+    else:
+        train, held = split_indices(len(ds.frames), cfg.holdout_every, cfg.holdout_offset)
     given = given.copy()
     given[held] = False
     if cfg.scene_box:
@@ -359,6 +358,34 @@ def load_views(path: str | Path, cfg: TrainConfig, check_masks: bool = True) -> 
     return views
 
 
+def load_transient(views: Views, i: int) -> np.ndarray | None:
+    """(H, W) bool transient pixels (a person, a hand) at the working size, or None when the frame has none."""
+    ds = views.dataset
+    m = read_transient(ds.root, ds.frames[i].fid)
+    if m is None:
+        return None
+    intr = views.intrinsics[i]
+    return _resize(m.astype(np.uint8), intr.w, intr.h, nearest=True) > 0
+
+
+def transient_at(views: Views, i: int, w: int, h: int) -> np.ndarray | None:
+    """Frame i's transient pixels at (w, h), None when it has none: pixels evaluation leaves unscored (the field
+    renders what is behind a hand, not the hand)."""
+    tr = load_transient(views, i)
+    if tr is None or not tr.any():
+        return None
+    return _resize(tr.astype(np.uint8), w, h, nearest=True) > 0
+
+
+def scored_mse(pred: np.ndarray, gt: np.ndarray, transient: np.ndarray | None = None) -> float:
+    """Mean squared error over the pixels that belong to the scene: a person or hand (`transient`, (H, W)) is not
+    drawn by the field and not held against it."""
+    err = (np.asarray(pred, np.float32) - np.asarray(gt, np.float32)) ** 2
+    if transient is None or not transient.any() or transient.all():
+        return float(err.mean())
+    return float(err[~transient].mean())
+
+
 def load_frame(views: Views, i: int) -> tuple[np.ndarray, np.ndarray | None]:
     """(rgb uint8 (H, W, 3), mask index map uint8 (H, W) or None) at the working size."""
     ds = views.dataset
@@ -366,8 +393,6 @@ def load_frame(views: Views, i: int) -> tuple[np.ndarray, np.ndarray | None]:
     frame = ds.frames[i]
     rgb = _resize(ds.load_image(frame), intr.w, intr.h, nearest=False)
     mask = None
-    from interreal.conventions import mask_file
-
     if mask_file(ds.root, frame.fid).exists():
         onehot = ds.load_mask(frame)
         if onehot.shape[-1] != ds.n_objects + 1:
@@ -380,8 +405,6 @@ class RayData:
     """All training pixels in memory (uint8) with per-intrinsics direction grids; draws random ray batches."""
 
     def __init__(self, views: Views, device: torch.device):
-        from tqdm import tqdm
-
         self.views = views
         self.device = device
         n = len(views.dataset.frames)
@@ -391,13 +414,16 @@ class RayData:
         self.h, self.w = h, w
         self.rgb = torch.empty((n, h, w, 3), dtype=torch.uint8)
         self.mask = torch.full((n, h, w), UNKNOWN, dtype=torch.uint8)
+        self.transient: torch.Tensor | None = None  # (N, H, W) bool once any frame has transient pixels
         for i in tqdm(range(n), desc="loading frames", leave=False, disable=n < 50):
             rgb, mask = load_frame(views, i)
             self.rgb[i] = torch.from_numpy(rgb)
             if mask is not None:
                 m = mask.astype(np.int64)
                 m = np.where(m == 0, views.dataset.n_objects, m - 1)  # class ids: objects 0..M-1, background M
+                m[mask == UNANNOTATED] = UNKNOWN  # a pixel with no channel set (official data): no mask loss
                 self.mask[i] = torch.from_numpy(m.astype(np.uint8))
+            self._add_transient(i, load_transient(views, i), n)
         self.has_masks = bool((self.mask != UNKNOWN).any())
         keys = {}
         self.dir_id = torch.zeros(n, dtype=torch.long)
@@ -427,7 +453,40 @@ class RayData:
             f_all = torch.cat([f_all, f_key])
         ys = torch.randint(self.h, (n,), generator=gen)
         xs = torch.randint(self.w, (n,), generator=gen)
+        if self.transient is not None:
+            f_all, ys, xs = self.avoid_transients(f_all, ys, xs, n - n_key, gen)
         return self.gather(f_all, ys, xs)
+
+    def _add_transient(self, i: int, tr: np.ndarray | None, n: int) -> None:
+        """Record frame i's transient pixels; their class becomes unknown (no probability-field loss there)."""
+        if tr is None or not tr.any():
+            return
+        if self.transient is None:
+            self.transient = torch.zeros((n, self.h, self.w), dtype=torch.bool)
+        self.transient[i] = torch.from_numpy(tr)
+        self.mask[i][self.transient[i]] = UNKNOWN
+
+    def avoid_transients(self, f: torch.Tensor, ys: torch.Tensor, xs: torch.Tensor, n_free: int,
+                         gen: torch.Generator, rounds: int = 32) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Rays that landed on a transient pixel are drawn again (frame and pixel, from the same pool: training
+        frames for the first `n_free`, keyframes after), so rays stay uniform over the static pixels and no loss ever
+        sees a person or a hand. Rays still on one after `rounds` (frames nearly all transient) are dropped."""
+        f, ys, xs = f.clone(), ys.clone(), xs.clone()
+        for _ in range(rounds):
+            idx = torch.nonzero(self.transient[f, ys, xs])[:, 0]
+            if not len(idx):
+                return f, ys, xs
+            free = idx < n_free
+            new = torch.empty(len(idx), dtype=torch.long)
+            n_f = int(free.sum())
+            new[free] = self.train[torch.randint(len(self.train), (n_f,), generator=gen)]
+            if n_f < len(idx):
+                new[~free] = self.keyframes[torch.randint(len(self.keyframes), (len(idx) - n_f,), generator=gen)]
+            f[idx] = new
+            ys[idx] = torch.randint(self.h, (len(idx),), generator=gen)
+            xs[idx] = torch.randint(self.w, (len(idx),), generator=gen)
+        keep = ~self.transient[f, ys, xs]
+        return f[keep], ys[keep], xs[keep]
 
     def gather(self, f: torch.Tensor, ys: torch.Tensor, xs: torch.Tensor) -> dict[str, torch.Tensor]:
         d = self.dirs_cam[self.dir_id[f], ys, xs]

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import os
+import statistics
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -55,8 +57,6 @@ def other_processes_cores(window: float = 0.5) -> float | None:
     Not the load average: after `interreal process` ran SfM in this very process, the 1-minute average still reads
     about 2 on a quiet machine, and the trainer would wrongly drop to one thread.
     """
-    import time
-
     def busy_total() -> int:
         with open("/proc/stat") as f:
             v = [int(x) for x in f.readline().split()[1:9]]
@@ -117,8 +117,6 @@ class ThreadTrial:
             self._decide()
 
     def _decide(self) -> None:
-        import statistics
-
         med = {n: statistics.median(t) for n, t in self.times.items() if t}
         self.chosen = min(med, key=med.get) if med else self.many
         self.medians = med

@@ -4,14 +4,23 @@ colour MSE, depth MSE (when depth exists), focal loss on rendered object masks, 
 different objects, Lvar (MSE on labelled (frame, object) pairs only), Laplacian smoothness along k, plane TV,
 L1 of k-planes towards 1, proposal interlevel and distortion losses, smoothness of the per-frame variable
 along time (not across its feature channels, as the official code does by mistake).
+
+`TERMS` is the table the trainer composes the loss from: each term's name is its weight in `LossConfig`.
 """
 
 from __future__ import annotations
 
+import functools
+import math
+from dataclasses import dataclass
+from typing import Callable
+
 import torch
 import torch.nn.functional as F
 
-from .field import KPlanes
+from .config import LossConfig
+from .field import KPlanes, LiveSceneModel
+from .sampler import RenderOut
 
 
 def focal_loss(logits: torch.Tensor, target: torch.Tensor, alpha: float = 0.5, gamma: float = 1.5) -> torch.Tensor:
@@ -117,7 +126,77 @@ def distortion_loss(edges: torch.Tensor, weights: torch.Tensor, near: torch.Tens
 
 
 def psnr(mse: torch.Tensor | float) -> float:
-    import math
-
     m = float(mse)
     return 100.0 if m <= 1e-10 else -10.0 * math.log10(m)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The table the loss is composed from
+# ----------------------------------------------------------------------------------------------------------------
+@dataclass
+class LossInputs:
+    """What the terms read for one training batch."""
+
+    model: LiveSceneModel
+    out: RenderOut  # the batch's rays rendered (`sampler.render_rays`)
+    batch: dict[str, torch.Tensor]  # `RayData.sample`: rgb, mask, labels, given, t ...
+    values: torch.Tensor  # (R, slots) object values of each ray's frame
+    gen: torch.Generator  # CPU generator (the repulsion's random pairs)
+
+    @functools.cached_property
+    def target(self) -> torch.Tensor:
+        """Class id per ray for the probability field: objects 0..M-1, background in the last slot."""
+        target = self.batch["mask"].clone()
+        target[target == self.model.n_objects] = self.model.cfg.max_objects
+        return target
+
+
+Term = Callable[[LossInputs, LossConfig], "torch.Tensor | None"]  # None: nothing to compare this batch
+
+
+def _with_logits(x: LossInputs, loss: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor | None:
+    return None if x.out.logits is None else loss(x.out.logits, x.target)
+
+
+def _proposal_sum(x: LossInputs, loss: Callable[[KPlanes], torch.Tensor]):
+    return sum(loss(p.grid) for p in x.model.proposals)
+
+
+# name (= its weight in LossConfig) -> (term, is a regulariser: evaluated every `reg_every` steps, weighted up by it)
+TERMS: dict[str, tuple[Term, bool]] = {
+    "rgb": (lambda x, w: ((x.out.rgb - x.batch["rgb"]) ** 2).mean(), False),
+    "interlevel": (lambda x, w: interlevel_loss(x.out.edges, x.out.weights, x.out.proposals)
+                   if x.out.proposals else None, False),
+    "distortion": (lambda x, w: distortion_loss(x.out.edges, x.out.weights, x.out.near, x.out.far), False),
+    "focal": (lambda x, w: _with_logits(x, lambda lg, t: focal_loss(lg, t, w.focal_alpha, w.focal_gamma)), False),
+    "repulsion": (lambda x, w: _with_logits(x, lambda lg, t: repulsion_loss(lg, t, w.repulsion_k, x.gen)), False),
+    "var": (lambda x, w: var_loss(x.values[:, : x.model.n_objects], x.batch["labels"], x.batch["given"])
+            if x.model.n_objects else None, False),
+    "var_smooth": (lambda x, w: time_smoothness(x.model.variable.line), False),
+    "k_smooth": (lambda x, w: k_smoothness(x.model.field.grid), True),
+    "k_smooth_proposal": (lambda x, w: _proposal_sum(x, k_smoothness), True),
+    "l1_k": (lambda x, w: l1_kplanes(x.model.field.grid), True),
+    "l1_k_proposal": (lambda x, w: _proposal_sum(x, l1_kplanes), True),
+    "plane_tv": (lambda x, w: plane_tv(x.model.field.grid), True),
+    "plane_tv_proposal": (lambda x, w: _proposal_sum(x, plane_tv), True),
+    "plane_tv_prob": (lambda x, w: plane_tv(x.model.prob.grid), True),
+}
+ALWAYS = {"rgb"}  # computed even at weight 0: its value is the PSNR the logs report
+
+
+def loss_terms(x: LossInputs, weights: LossConfig, regularise: bool = True) -> dict[str, torch.Tensor]:
+    """The terms with a non-zero weight (and the regularisers only when `regularise`), in `TERMS` order."""
+    terms = {}
+    for name, (term, is_reg) in TERMS.items():
+        if (is_reg and not regularise) or (name not in ALWAYS and not getattr(weights, name)):
+            continue
+        value = term(x, weights)
+        if value is not None:
+            terms[name] = value
+    return terms
+
+
+def total_loss(terms: dict[str, torch.Tensor], weights: LossConfig, reg_every: int = 1) -> torch.Tensor:
+    """The weighted sum; a regulariser evaluated every `reg_every` steps counts `reg_every` times."""
+    w = vars(weights)
+    return sum(w[k] * (reg_every if TERMS[k][1] else 1) * v for k, v in terms.items())

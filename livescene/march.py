@@ -147,18 +147,14 @@ Reader = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]  # (points (P, 3),
 
 def march_level(origins: torch.Tensor, dirs: torch.Tensor, edges: torch.Tensor, read: Reader,
                 occupied: Callable[[torch.Tensor], torch.Tensor] | None, stats: MarchStats | None,
-                terminate: float = TERMINATE_T, reach: Callable[[torch.Tensor], torch.Tensor] | None = None,
-                affected: torch.Tensor | None = None) -> tuple[torch.Tensor, list[tuple[torch.Tensor, torch.Tensor]]]:
+                terminate: float = TERMINATE_T) -> tuple[torch.Tensor, list[tuple[torch.Tensor, torch.Tensor]]]:
     """Densities (R, S) at the bins' middles, read front to back in segments: only in occupied cells and only
-    while the ray's transmittance is above `terminate` (elsewhere 0). Also the (ray, sample) indices read.
-    With `reach` (the grid's rigid-part cells), rays with a sample there are marked in `affected` (R,)."""
+    while the ray's transmittance is above `terminate` (elsewhere 0). Also the (ray, sample) indices read."""
     mid = 0.5 * (edges[:, 1:] + edges[:, :-1])
     delta = edges[:, 1:] - edges[:, :-1]
     r, s = mid.shape
     pts = origins[:, None, :] + dirs[:, None, :] * mid[..., None]
     occ = occupied(pts.reshape(-1, 3)).view(r, s) if occupied is not None else None
-    if reach is not None and affected is not None:
-        affected |= reach(pts.reshape(-1, 3)).view(r, s).any(1)
     sigma = torch.zeros(r, s, device=edges.device, dtype=edges.dtype)
     tau = torch.zeros(r, device=edges.device, dtype=edges.dtype)
     stop = -math.log(terminate)
@@ -189,19 +185,16 @@ def march_level(origins: torch.Tensor, dirs: torch.Tensor, edges: torch.Tensor, 
 def march_rays(model: LiveSceneModel, fixed: FixedStates, origins: torch.Tensor, dirs: torch.Tensor,
                box: tuple[torch.Tensor, torch.Tensor], cfg: SamplerConfig,
                occupied: Callable[[torch.Tensor], torch.Tensor] | None = None, with_logits: bool = True,
-               stats: MarchStats | None = None, terminate: float = TERMINATE_T,
-               reach: Callable[[torch.Tensor], torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+               stats: MarchStats | None = None, terminate: float = TERMINATE_T) -> dict[str, torch.Tensor]:
     """`sampler.render_rays` (deterministic, at fixed states) with skipping: rgb (R, 3), depth (R,) along the
     ray, acc (R,), logits (R, max_objects + 1) or None. `occupied(points (P, 3)) -> bool (P,)`: the grid test;
-    `terminate`: the transmittance at which a ray stops (larger: faster, the light left is the background's);
-    `reach`: the grid's rigid-part test, for `affected` (R,): rays that may change with the states."""
+    `terminate`: the transmittance at which a ray stops (larger: faster, the light left is the background's)."""
     lo, hi = box
     near, far = ray_box(origins, dirs, lo, hi, cfg.near)
     r = origins.shape[0]
     if stats is not None:
         stats.rays += r
     edges = uniform_edges(near, far, cfg.proposal_samples[0], None)
-    affected = torch.zeros(r, dtype=torch.bool, device=origins.device) if reach is not None else None
     for level, prop in enumerate(model.proposals):
         if model.proposals_read_k:
             def read(pts, ri, prop=prop):
@@ -210,7 +203,7 @@ def march_rays(model: LiveSceneModel, fixed: FixedStates, origins: torch.Tensor,
         else:
             def read(pts, ri, prop=prop):
                 return prop(normalise(pts, box), None)
-        sigma, _ = march_level(origins, dirs, edges, read, occupied, stats, terminate, reach, affected)
+        sigma, _ = march_level(origins, dirs, edges, read, occupied, stats, terminate)
         w = volume_weights(sigma, edges)
         n_next = cfg.proposal_samples[level + 1] if level + 1 < len(model.proposals) else cfg.samples
         edges = pdf_edges(edges, w, n_next, None)
@@ -222,7 +215,7 @@ def march_rays(model: LiveSceneModel, fixed: FixedStates, origins: torch.Tensor,
         kept.append((h, view, logits))
         return sigma
 
-    sigma, read_at = march_level(origins, dirs, edges, read_final, occupied, stats, terminate, reach, affected)
+    sigma, read_at = march_level(origins, dirs, edges, read_final, occupied, stats, terminate)
     s = sigma.shape[1]
     w = volume_weights(sigma, edges)
     acc = w.sum(-1)
@@ -241,4 +234,4 @@ def march_rays(model: LiveSceneModel, fixed: FixedStates, origins: torch.Tensor,
     color = (w[..., None] * rgb).sum(1) + (1 - acc)[:, None] * model.background()
     depth = (w * mid).sum(-1) + (1 - acc) * far
     out_logits = render_logits(logits, w, model.slot_mask, model.mask_render) if logits is not None else None
-    return {"rgb": color, "depth": depth, "acc": acc, "logits": out_logits, "affected": affected}
+    return {"rgb": color, "depth": depth, "acc": acc, "logits": out_logits}

@@ -14,6 +14,7 @@ cell, so a thin surface between sample points is kept. Built once after training
 
 from __future__ import annotations
 
+import io
 import math
 import time
 from dataclasses import dataclass, field
@@ -23,7 +24,11 @@ from typing import Any, Callable
 import torch
 import torch.nn.functional as F
 
+from interreal import atomic
+
+from .articulation import KIND_CODES
 from .field import LiveSceneModel
+from .march import rest_transform
 
 GRID_VERSION = 2  # 2: with `reach`
 MAX_RES = 128  # cells along the box's longest axis at most; at least MIN_RES, else the field's finest plane
@@ -195,8 +200,6 @@ def _masked_corner_max(dens: "_Densities", lo: torch.Tensor, hi: torch.Tensor, c
 
 def _sweep_steps(model: LiveSceneModel, obj: int, lo: torch.Tensor, hi: torch.Tensor, cell: float) -> int:
     """States to visit so that no point of the part's box moves more than a cell between two of them."""
-    from .articulation import KIND_CODES
-
     m = model.motions
     rng = abs(float(m.range[obj]))
     if int(m.kind[obj]) == KIND_CODES["hinge"]:
@@ -215,8 +218,6 @@ def _sweep_part(grid: torch.Tensor, reach: torch.Tensor, model: LiveSceneModel, 
     """Carry a rigid part's rest-frame density through its motion into the world grid (in place): points spread
     at most a world cell apart over every rest cell denser than `floor` are moved to each swept state (at most a
     cell apart too), and the world cell a point lands in takes its density if larger. Returns the states swept."""
-    from .march import rest_transform
-
     plo, phi, dens = part
     shape = grid.shape
     blo, bhi = box
@@ -335,10 +336,6 @@ def grid_for(run, build: bool = True) -> OccupancyGrid | None:
     grid = build_grid(run.model, (lo, hi), run.step)
     run.occupancy = grid
     try:
-        import io
-
-        from interreal import atomic
-
         buf = io.BytesIO()
         torch.save({"checkpoint": Path(ckpt).name, "grid": grid.state()}, buf)
         atomic.write_bytes(cache, buf.getvalue())

@@ -1,4 +1,5 @@
-"""`livescene render` and `render_view`: any camera at any object states -> RGB, depth, object probabilities.
+"""`render_view`: any camera at any object states -> RGB, depth, object probabilities (`livescene render` is
+`commands/render.py`); cameras along a path or from a JSON file, state parsing, colour maps.
 
 States: a mapping {name: value} (missing objects take the learned value at `time`), a sequence of values in
 mapping.yaml order, or None (all learned values at `time`, i.e. what the scene looked like at that frame).
@@ -7,19 +8,21 @@ mapping.yaml order, or None (all learned values at `time`, i.e. what the scene l
 from __future__ import annotations
 
 import json
-import sys
+import time as _time
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+import matplotlib
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
-from interreal import atomic
 from interreal.dataset import Intrinsics
 from interreal.video import write_video  # noqa: F401 - part of this module's API
 
 from .data import camera_rays, check_intrinsics, check_pose, nearest_views, pixel_directions
-from .errors import LiveSceneError, writing
+from .errors import LiveSceneError
+from .adaptive import STRIDE, TOLERANCE, render_image
 from .sampler import render_rays
 
 StateSpec = Mapping[str, float] | Sequence[float] | np.ndarray | None
@@ -127,92 +130,72 @@ FAST_CHUNK = {"cpu": 8192, "cuda": 1 << 16}  # ... of the fast one (on 2 cores 3
 @torch.no_grad()
 def render_view(run, c2w_gl: np.ndarray, intrinsics: Intrinsics, states: StateSpec = None, *, time: float = 0.0,
                 chunk: int | None = None, fast: bool = True, occupancy: Any = None,
-                threshold: float | None = None, terminate: float | None = None) -> dict[str, Any]:
+                threshold: float | None = None, terminate: float | None = None,
+                tolerance: float | None = None, stride: int | None = None) -> dict[str, Any]:
     """Render one camera (4x4 camera-to-world, OpenGL axes as in transforms.json) at the given states.
 
     Returns rgb (H, W, 3) float32 in [0, 1], depth (H, W) z-depth in world units, acc (H, W),
     probs (H, W, M + 1): softmax of the rendered object logits, background last, `states` (M,), and `seconds`
-    (wall time of this render), `rays`, `fast` and `march` (what the fast renderer read: `march.MarchStats`).
+    (wall time of this render), `rays`, `fast`, `march` (what the fast renderer read: `march.MarchStats`),
+    `traced` (pixels traced, the others interpolated) and `rays_reused` (from the last image of this camera).
 
-    fast: the fast renderer (`livescene.march`: empty-space skipping with the run's occupancy grid, early ray
-    termination, state-dependent work done once per call); False = the exact renderer, every sample of every
-    level read, for comparison. occupancy: None = the run's grid (`occupancy.grid_for`: the checkpoint's, else
-    cached next to it or built on first use; none for a model being trained), False = no grid (still early
-    termination), or an `OccupancyGrid`. threshold: the grid's density threshold (default its `threshold()`).
-    terminate: transmittance at which a ray stops (default `march.TERMINATE_T`, 1e-4; larger is faster, coarser).
+    fast: the fast renderer (`livescene.adaptive` over `livescene.march`: a coarse lattice of pixels traced and
+    flat regions interpolated, empty-space skipping with the run's occupancy grid, early ray termination,
+    state-dependent work done once per call, pixels no moving part can reach reused across states); False = the
+    exact renderer, every sample of every level of every pixel read, for comparison. occupancy: None = the run's
+    grid (`occupancy.grid_for`: the checkpoint's, else cached next to it or built on first use; none for a model
+    being trained), False = no grid, or an `OccupancyGrid`. threshold: the grid's density threshold (default its
+    `threshold()`). terminate: transmittance at which a ray stops (default `march.TERMINATE_T`). tolerance: how
+    far a pixel's traced neighbours may disagree for it to be interpolated (default `adaptive.TOLERANCE`; 0 traces
+    every pixel); stride: pixels between the coarsest traced ones (default `adaptive.STRIDE`).
     Thread-safe for concurrent calls on one run only if they do not build its grid at the same time."""
-    import time as _time
-
     t_start = _time.perf_counter()
     model = run.model
     was_training = model.training
     model.eval()
     vals = resolve_states(run, states, time)
-    origins, dirs, z_scale = camera_rays(c2w_gl, intrinsics, pixel_directions(intrinsics))
     m = model.n_objects
     values = model.pad_values(torch.as_tensor(vals, device=run.device)[None])
-    rgb, depth, acc, probs = [], [], [], []
-    o_all = torch.from_numpy(np.ascontiguousarray(origins)).to(run.device)
-    d_all = torch.from_numpy(dirs).to(run.device)
-    stats, reach, key, todo = None, None, None, None
-    if fast:
-        from .march import TERMINATE_T, FixedStates, MarchStats, march_rays
-        from .occupancy import grid_for
-
-        grid = grid_for(run) if occupancy is None else (occupancy or None)
-        grid = grid.to(run.device) if grid is not None else None
-        tester = grid.tester(threshold) if grid is not None else None
-        fixed = FixedStates(model, values[0])
-        stats = MarchStats()
-        if (grid is not None and grid.reach is not None and fixed.gate_decides
-                and getattr(run, "checkpoint", None) is not None):
-            # every object moves rigidly: rays that meet no cell a part can reach look the same at any state, so
-            # the same camera at other states re-renders only the others (a slider moved in a viewer)
-            reach = grid.tester(reach=True)
-            key = (np.asarray(c2w_gl, dtype=np.float64).tobytes(), repr(intrinsics), threshold, terminate, id(grid))
-            last = getattr(run, "_state_cache", None)
-            if last is not None and last["key"] == key:
-                todo = last["affected"].nonzero()[:, 0].to(run.device)
-    chunk = chunk or (FAST_CHUNK.get(run.device.type, EXACT_CHUNK) if fast else EXACT_CHUNK)
-    if todo is not None:
-        o_all, d_all = o_all[todo], d_all[todo]
-    affected = []
-    for s in range(0, o_all.shape[0], chunk):
-        o, d = o_all[s: s + chunk], d_all[s: s + chunk]
-        if fast:
-            out = march_rays(model, fixed, o, d, run.box, run.config.sampler, tester, True, stats,
-                             terminate or TERMINATE_T, reach)
-            c, dep, a, logits = out["rgb"], out["depth"], out["acc"], out["logits"]
-            if reach is not None:
-                affected.append(out["affected"].cpu())
-        else:
-            out = render_rays(model, o, d, values.expand(o.shape[0], -1), run.box, run.config.sampler, gen=None,
-                              with_logits=True)
-            c, dep, a, logits = out.rgb, out.depth, out.acc, out.logits
-        rgb.append(c.clamp(0, 1).cpu())
-        depth.append(dep.cpu())
-        acc.append(a.cpu())
-        lg = torch.cat([logits[:, :m], logits[:, -1:]], -1)
-        probs.append(torch.softmax(lg, -1).cpu())
-    if was_training:
-        model.train()
     h, w = intrinsics.h, intrinsics.w
-    cat = (lambda parts, *shape: torch.cat(parts) if parts else torch.zeros(0, *shape))
-    res = {"rgb": cat(rgb, 3), "depth": cat(depth), "acc": cat(acc), "probs": cat(probs, m + 1)}
-    if todo is not None:  # the cached image with the rays that may have changed replaced
-        full = {k: v.clone() for k, v in last["out"].items()}
-        for k, v in res.items():
-            full[k][todo.cpu()] = v
-        res = full
-    elif key is not None:
-        run._state_cache = {"key": key, "affected": torch.cat(affected), "out": {k: v.clone() for k, v in res.items()}}
+    chunk = chunk or (FAST_CHUNK.get(run.device.type, EXACT_CHUNK) if fast else EXACT_CHUNK)
+    try:
+        if fast:
+            res = render_image(run, c2w_gl, intrinsics, values, chunk=chunk, occupancy=occupancy,
+                               threshold=threshold, terminate=terminate, stride=stride or STRIDE,
+                               tolerance=TOLERANCE if tolerance is None else tolerance)
+        else:
+            res = _render_exact(run, c2w_gl, intrinsics, values, chunk)
+    finally:
+        if was_training:
+            model.train()
+    z_scale = camera_rays(c2w_gl, intrinsics, pixel_directions(intrinsics))[2]
     return {"rgb": res["rgb"].view(h, w, 3).numpy(),
             "depth": (res["depth"].numpy() * z_scale).reshape(h, w).astype(np.float32),
             "acc": res["acc"].view(h, w).numpy(),
             "probs": res["probs"].view(h, w, m + 1).numpy(),
             "states": vals, "seconds": _time.perf_counter() - t_start, "rays": h * w, "fast": bool(fast),
-            "march": stats.as_dict() if stats is not None else None,
-            "rays_reused": 0 if todo is None else h * w - len(todo)}
+            "march": res["march"].as_dict() if fast else None,
+            "traced": res.get("traced", h * w), "rays_reused": res.get("rays_reused", 0)}
+
+
+def _render_exact(run, c2w_gl: np.ndarray, intrinsics: Intrinsics, values: torch.Tensor, chunk: int
+                  ) -> dict[str, torch.Tensor]:
+    """`sampler.render_rays` over every pixel: rgb (H*W, 3), depth along the ray, acc, probs (H*W, M + 1)."""
+    origins, dirs, _ = camera_rays(c2w_gl, intrinsics, pixel_directions(intrinsics))
+    o_all = torch.from_numpy(np.ascontiguousarray(origins)).to(run.device)
+    d_all = torch.from_numpy(dirs).to(run.device)
+    m = run.model.n_objects
+    rgb, depth, acc, probs = [], [], [], []
+    for s in range(0, o_all.shape[0], chunk):
+        o, d = o_all[s: s + chunk], d_all[s: s + chunk]
+        out = render_rays(run.model, o, d, values.expand(o.shape[0], -1), run.box, run.config.sampler, gen=None,
+                          with_logits=True)
+        rgb.append(out.rgb.clamp(0, 1).cpu())
+        depth.append(out.depth.cpu())
+        acc.append(out.acc.cpu())
+        probs.append(torch.softmax(torch.cat([out.logits[:, :m], out.logits[:, -1:]], -1), -1).cpu())
+    cat = (lambda parts, *shape: torch.cat(parts) if parts else torch.zeros(0, *shape))
+    return {"rgb": cat(rgb, 3), "depth": cat(depth), "acc": cat(acc), "probs": cat(probs, m + 1)}
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -230,14 +213,10 @@ def _slerp(q0: np.ndarray, q1: np.ndarray, t: float) -> np.ndarray:
 
 
 def _mat_to_quat(r: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_matrix(r).as_quat()
 
 
 def _quat_to_mat(q: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_quat(q).as_matrix()
 
 
@@ -353,132 +332,15 @@ def parse_sweep(text: str) -> tuple[str, np.ndarray]:
 
 def colorize_probs(probs: np.ndarray) -> np.ndarray:
     """(H, W, M+1) -> RGB uint8: one colour per object, black background, brightness = probability."""
-    import matplotlib
-
     m = probs.shape[-1] - 1
     cols = np.array([matplotlib.colormaps["tab10"](i % 10)[:3] for i in range(m)] + [(0, 0, 0)])
     return (np.clip(probs @ cols, 0, 1) * 255).astype(np.uint8)
 
 
 def colorize_depth(depth: np.ndarray) -> np.ndarray:
-    import matplotlib
-
     lo, hi = np.percentile(depth, 1), np.percentile(depth, 99)
     d = np.clip((depth - lo) / max(hi - lo, 1e-6), 0, 1)
     return (matplotlib.colormaps["turbo"](1 - d)[..., :3] * 255).astype(np.uint8)
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# CLI
-# ----------------------------------------------------------------------------------------------------------------
-def add_arguments(p) -> None:
-    p.add_argument("run", type=Path, help="run folder of `livescene train`")
-    p.add_argument("--out", type=Path, default=None, help="folder for PNGs (default RUN/renders)")
-    p.add_argument("--cameras", default="dataset",
-                   help="dataset (the dataset's cameras), held-out, path (a smooth path along them) or a JSON file")
-    p.add_argument("--frames", default="",
-                   help="positions within the --cameras set, e.g. 0,8,16: with dataset the dataset's frames, with "
-                        "held-out the held-out frames (0 = the first held-out frame), with path or a JSON file its "
-                        "cameras (default: every 8th dataset frame, every held-out frame, every path/JSON camera)")
-    p.add_argument("--count", type=int, default=30, help="cameras on a smooth path")
-    p.add_argument("--state", action="append", default=[], metavar='"NAME=VALUE"', help="fix an object's state (repeatable)")
-    p.add_argument("--command", default=None, metavar='"open the fridge"',
-                   help='a spoken command: open / close / half open an object found by text (needs the language extra)')
-    p.add_argument("--sweep", default=None, metavar='"NAME=A:B:N"',
-                   help="sweep one object's state from each camera --cameras/--frames choose (with the default "
-                        "--cameras dataset and no --frames: from the first dataset frame)")
-    p.add_argument("--time", type=float, default=None, help="learned states of this normalised frame time for free objects")
-    p.add_argument("--scale", type=float, default=1.0, help="resolution scale of the rendered images")
-    p.add_argument("--video", type=Path, default=None, help="also write an H.264 MP4 of the RGB frames")
-    p.add_argument("--fps", type=int, default=15)
-    p.add_argument("--depth", action="store_true", help="also write depth maps (colour PNG + 16-bit mm PNG)")
-    p.add_argument("--probs", action="store_true", help="also write object-probability maps")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--dataset", type=Path, default=None,
-                   help="the run's dataset where it is now, when it was moved (a run renders with its dataset's "
-                        "cameras, frame times and object names; it is validated like any other read)")
-    p.add_argument("--exact", action="store_true",
-                   help="the exact renderer (every sample read; slower), e.g. to compare with the fast default")
-    p.epilog = ('examples:\n'
-                '  livescene render out/run --cameras held-out --depth --probs\n'
-                '  livescene render out/run --sweep "fridge door=0:1:30" --video out/door.mp4\n'
-                '  livescene render out/run --cameras held-out --frames 0 --sweep "fridge door=0:1:30"  # 1st held-out\n'
-                '  livescene render out/run --command "open the fridge" --cameras held-out\n'
-                '  livescene render out/run --cameras path --count 60 --state "fridge door=0.3" --video out/path.mp4\n'
-                '  livescene render out/run --cameras cams.json   # {"frames": [{"transform_matrix": ..., "states": {...}}]}\n'
-                '\na part set to a state that no training view near a camera showed is named in a warning:\n'
-                'it is drawn from a side the capture never saw it at, and may come out blurred or missing')
-
-
-def main(args) -> int:
-    from .trainer import load_run
-
-    from .device import configure_threads
-
-    configure_threads(0)
-    check_render_args(args)
-    base_states = parse_states(args.state)  # before the run loads: a bad state costs nothing
-    run = load_run(args.run, device=args.device, dataset=args.dataset)
-    views = run.views
-    unknown = [n for n in base_states if n not in run.names]
-    if unknown:
-        raise LiveSceneError(f"--state: unknown object {unknown[0]!r}; this run has {run.names}")
-    if args.command:  # livescene.language: "open the fridge" -> {"fridge door": 1.0}
-        from .language import apply_command
-        base_states.update(apply_command(run, args.command))
-    jobs: list[dict[str, Any]] = []
-    if args.cameras in ("dataset", "held-out"):
-        for i in (views.held_out if args.cameras == "held-out" else range(len(views.times))):
-            jobs.append({"c2w": views.c2w_gl[i], "intrinsics": views.intrinsics[i], "states": None,
-                         "time": float(views.times[i]), "name": views.dataset.frames[i].fid})
-    elif args.cameras == "path":
-        for j, m in enumerate(smooth_path(views.c2w_gl, args.count)):
-            jobs.append({"c2w": m, "intrinsics": views.intrinsics[0], "states": None,
-                         "time": j / max(args.count - 1, 1), "name": f"path_{j:04d}"})
-    else:
-        for j, c in enumerate(read_camera_path(Path(args.cameras), views.intrinsics[0])):
-            jobs.append({**c, "time": 0.0, "name": f"cam_{j:04d}"})
-    jobs = choose_cameras(jobs, args)
-    if not jobs:
-        raise LiveSceneError("no cameras to render (check --cameras / --frames)")
-    if args.sweep:
-        name, values = parse_sweep(args.sweep)
-        jobs = [{**cam, "states": {name: float(v)}, "name": f"{cam['name']}_{name.replace(' ', '_')}_{j:03d}"}
-                for cam in jobs for j, v in enumerate(values)]
-    for msg in warn_unseen(run, jobs, base_states):
-        print(f"livescene render: warning: {msg}", file=sys.stderr)
-    out_dir = args.out or (args.run / "renders")
-    frames: list[np.ndarray] = []
-    written: list[Path] = []  # removed again when the disk fills or a folder is read-only: no half output
-    meter = RenderMeter()
-    with writing(out_dir, cleanup=written):
-        _render_jobs(run, jobs, base_states, args, out_dir, frames, written, meter)
-        if args.video:
-            written.append(args.video)
-            write_video(args.video, frames, fps=args.fps)
-        speed = meter.report()  # RUN/renders/render.json: what was rendered and how fast
-        written.append(out_dir / "render.json")
-        atomic.write_json(out_dir / "render.json", {"run": str(args.run), "step": run.step, "views": len(frames),
-                                                    "video": str(args.video) if args.video else None,
-                                                    "names": [j["name"] for j in jobs], "speed": speed})
-    print(f"livescene render: {len(frames)} views -> {out_dir}" + (f", {args.video}" if args.video else "")
-          + f" ({speed['renderer']} renderer, {speed['seconds_per_frame'] or 0:.2f} s a frame, "
-            f"{speed['rays_per_s'] or 0:,} rays/s)")
-    return 0
-
-
-def check_render_args(args) -> None:
-    """Numbers of the command line that would render nothing or garbage: refused with the option named."""
-    if args.time is not None and not (np.isfinite(args.time) and 0.0 <= args.time <= 1.0):
-        raise LiveSceneError(f"--time {args.time}: a normalised frame time in [0, 1]")
-    if not (np.isfinite(args.scale) and 0.0 < args.scale <= 16.0):
-        raise LiveSceneError(f"--scale {args.scale}: a resolution scale in (0, 16]")
-    if not 1 <= args.count <= 100_000:
-        raise LiveSceneError(f"--count {args.count}: between 1 and 100000 cameras")
-    if not 1 <= args.fps <= 240:
-        raise LiveSceneError(f"--fps {args.fps}: between 1 and 240")
-    if args.cameras not in ("dataset", "held-out", "path") and not Path(args.cameras).is_file():
-        raise LiveSceneError(f"--cameras {args.cameras!r}: use dataset, held-out, path or an existing JSON file")
 
 
 def choose_cameras(jobs: list[dict[str, Any]], args) -> list[dict[str, Any]]:
@@ -503,29 +365,3 @@ def frame_positions(text: str, n: int, cameras: str = "dataset") -> list[int]:
         what = "the dataset" if cameras == "dataset" else f"--cameras {cameras}"
         raise LiveSceneError(f"--frames: position {bad[0]} is not a frame of {what} ({n} cameras: 0 to {n - 1})")
     return pos
-
-
-def _render_jobs(run, jobs, base_states, args, out_dir: Path, frames: list, written: list[Path],
-                 meter: RenderMeter | None = None) -> None:
-    from tqdm import tqdm
-
-    for job in tqdm(jobs, desc="render"):
-        intr = job["intrinsics"]
-        if args.scale != 1.0:
-            intr = intr.scaled(max(1, round(intr.w * args.scale)), max(1, round(intr.h * args.scale)))
-        states = {**(job.get("states") or {}), **base_states}
-        t = args.time if args.time is not None else job["time"]
-        out = render_view(run, job["c2w"], intr, states or None, time=t, fast=not getattr(args, "exact", False))
-        if meter is not None:
-            meter.add(out)
-        rgb8 = (out["rgb"] * 255).round().astype(np.uint8)
-        images = {f"{job['name']}.png": rgb8}
-        if args.depth:
-            images[f"{job['name']}_depth.png"] = colorize_depth(out["depth"])
-            images[f"{job['name']}_depth_mm.png"] = np.clip(out["depth"] * 1000, 0, 65535).astype(np.uint16)
-        if args.probs:
-            images[f"{job['name']}_probs.png"] = colorize_probs(out["probs"])
-        for name, image in images.items():
-            written.append(out_dir / name)
-            atomic.write_image(out_dir / name, image)
-        frames.append(rgb8)

@@ -1,22 +1,18 @@
-"""`livescene train`: fit the LiveScene model to a dataset; `load_run` reopens a trained run.
+"""Training: fit the LiveScene model to a dataset and write a run (`livescene train` is `commands/train.py`).
 
-Run folder (docs/interfaces.md "Trained run"): config.yaml, checkpoints/step_<n>.pt, latest.pt (atomic),
-metrics.jsonl, objects.yaml, reports/train.json. `--resume` restores weights, optimiser, step and every random
-generator, so a killed run continues exactly as if it had not stopped. A NaN/inf loss rolls back to the last
-good checkpoint with a halved learning rate; after `max_divergence_retries` it stops with DivergenceError.
+`--resume` restores weights, optimiser, step and every random generator, so a killed run continues exactly as if
+it had not stopped. A NaN/inf loss rolls back to the last good checkpoint with a halved learning rate; after
+`max_divergence_retries` it stops with DivergenceError. The run folder and its checkpoints are `livescene.run`'s.
 
 Inputs are checked before the optimiser can be blamed: the dataset must pass `interreal validate` (`load_views`),
-the settings their types and ranges (`check_config`). Reading a run falls back from an unreadable latest.pt to the
-newest intact checkpoints/step_*.pt, with a warning. A resume drops the metrics.jsonl records past the step it
+the settings their types and ranges (`check_config`). A resume drops the metrics.jsonl records past the step it
 resumes from (the steps are trained again), and leaves a finished run untouched.
 """
 
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import functools
-import io
 import json
 import math
 import os
@@ -24,77 +20,45 @@ import random
 import shutil
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from interreal import atomic
 from interreal.dataset import Intrinsics
 from interreal.report import StageReport, read_report
 
 from . import losses as L
-from .config import TrainConfig, apply_overrides, check_config, from_dict, load_preset, preset_names, resolve_sizes
-from .data import RayData, Views, closest_point_depth, load_views
-from .device import JEMALLOC_ENV, ThreadTrial, configure_threads, describe, reexec_with_jemalloc, select_device
-from .errors import CheckpointError, DivergenceError, LiveSceneError, OutputError, writing
+from .articulation import fit_hulls
+from .config import TrainConfig, check_config, resolve
+from .data import RayData, Views, load_views, scored_mse, transient_at
+from .device import ThreadTrial, describe, select_device
+from .errors import CheckpointError, DivergenceError, LiveSceneError, writing
+from .evaluate import pick_frames
 from .field import LiveSceneModel
+from .fitcheck import LOW_FIT_PSNR, label_warnings, learned_states, state_warnings
+from .occupancy import build_cost, build_grid
+from .render import render_view
+from .run import (RESUME_KEYS, Run, check_run_dataset, checkpoint_config, checkpoint_files, load_checkpoint,
+                  load_run, remove_stale_temporaries, run_lock, write_checkpoint)
 from .sampler import render_rays
 
-REGULARISERS = ("k_smooth", "k_smooth_proposal", "l1_k", "l1_k_proposal", "plane_tv", "plane_tv_proposal",
-                "plane_tv_prob")
-
+__all__ = ["Run", "Trainer", "build_model", "load_run", "train"]  # Run, load_run: `livescene.run`'s, named here too
 
 # ----------------------------------------------------------------------------------------------------------------
-# Run
+# The model a run trains
 # ----------------------------------------------------------------------------------------------------------------
-@dataclass
-class Run:
-    """A trained (or training) model with what is needed to render it."""
-
-    run_dir: Path
-    model: LiveSceneModel
-    views: Views
-    config: TrainConfig
-    device: torch.device
-    step: int = 0
-    checkpoint: Path | None = None  # the file the model was read from (None: a model being trained)
-    occupancy: Any = None  # its `livescene.occupancy.OccupancyGrid` (the checkpoint's, or built on first use)
-
-    @property
-    def dataset(self):
-        return self.views.dataset
-
-    @property
-    def names(self) -> list[str]:
-        return self.views.names
-
-    @property
-    def box(self) -> tuple[torch.Tensor, torch.Tensor]:
-        return (torch.as_tensor(self.views.box_lo, device=self.device),
-                torch.as_tensor(self.views.box_hi, device=self.device))
-
-
 def build_model(cfg: TrainConfig, views: Views) -> tuple[TrainConfig, LiveSceneModel]:
-    """Resolve the scene-driven sizes and build the model (its parameter count ignores the object count)."""
-    cfg = from_dict(cfg.to_dict())
-    cfg.model = resolve_sizes(cfg.model, views.scene_info())
-    if cfg.sampler.near_auto > 0:
-        closest = closest_point_depth(views.dataset, views.c2w_gl, views.intrinsics)
-        if closest is not None:
-            cfg.sampler.near = max(cfg.sampler.near, round(cfg.sampler.near_auto * closest, 4))
-    n = views.dataset.n_objects
-    if n > cfg.model.max_objects:
-        # more objects than slots: widen the slots (only the probability field's and the variable's input and
-        # output layers grow, a few hundred parameters per object) rather than refuse the scene
-        print(f"livescene train: {n} objects > {cfg.model.max_objects} object slots: using {n} slots",
-              file=sys.stderr)
-        cfg.model.max_objects = n
+    """Resolve the scene-driven settings (`config.resolve`) and build the model (its parameter count ignores the
+    object count)."""
+    cfg = resolve(cfg, views)
     motions = part_motions(cfg.model.motion, views)
     cfg.model.motion = "rigid" if motions else "none"
-    model = LiveSceneModel(cfg.model, n)
+    model = LiveSceneModel(cfg.model, views.n_objects)
     if motions:
         model.motions.load(motions)
     return cfg, model
@@ -111,135 +75,6 @@ def part_motions(mode: str, views: Views) -> list | None:
         raise LiveSceneError(f"model.motion=rigid but {ds.root} has no part motions (articulation.json): "
                              f"run `interreal motions {ds.root}`, or train with --set model.motion=none")
     return found
-
-
-def _checkpoint_path(run_dir: Path, which: str | int | None) -> Path:
-    if which is None or which == "latest":
-        path = run_dir / "latest.pt"
-    elif isinstance(which, int) or str(which).isdigit():
-        path = run_dir / "checkpoints" / f"step_{int(which):07d}.pt"
-    else:
-        path = Path(which)
-    if not path.exists():
-        raise CheckpointError(f"{path} not found: is {run_dir} a run folder of `livescene train`?")
-    return path
-
-
-CKPT_KEYS = ("step", "model", "config", "meta")  # what rendering needs
-RESUME_KEYS = CKPT_KEYS + ("optimizer", "rng")  # what resuming needs too
-
-
-def read_checkpoint(path: Path, keys: tuple[str, ...] = CKPT_KEYS) -> dict[str, Any]:
-    """One checkpoint file, or CheckpointError saying why it cannot be used (truncated, not a checkpoint, NaN)."""
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # noqa: BLE001 - any unpickling failure means "not a usable checkpoint"
-        raise CheckpointError(f"{path} is unreadable (truncated or not a checkpoint: {type(exc).__name__})") from exc
-    missing = [k for k in keys if not isinstance(ckpt, dict) or k not in ckpt]
-    if missing:
-        raise CheckpointError(f"{path} is not a livescene checkpoint (no {', '.join(missing)})")
-    if not isinstance(ckpt["meta"], dict) or not isinstance(ckpt["config"], dict) or not isinstance(ckpt["model"], dict):
-        raise CheckpointError(f"{path} is not a livescene checkpoint (malformed meta/config/model)")
-    bad = [k for k, t in ckpt["model"].items()
-           if isinstance(t, torch.Tensor) and t.is_floating_point() and not bool(torch.isfinite(t).all())]
-    if bad:
-        raise CheckpointError(f"{path} holds non-finite weights ({bad[0]})")
-    return ckpt
-
-
-def checkpoint_files(run_dir: Path) -> list[Path]:
-    """latest.pt, then checkpoints/step_*.pt newest first: the order `load_checkpoint` tries them in."""
-    steps = sorted((run_dir / "checkpoints").glob("step_*.pt"), reverse=True)
-    return [p for p in [run_dir / "latest.pt", *steps] if p.is_file()]
-
-
-def load_checkpoint(run_dir: str | Path, which: str | int | None = None,
-                    keys: tuple[str, ...] = CKPT_KEYS) -> tuple[dict[str, Any], Path]:
-    """(checkpoint, path): the one asked for, or with `which` None / "latest" the newest intact one - latest.pt,
-    else (a kill or a full disk truncated it) the newest checkpoints/step_*.pt that loads, with a warning."""
-    run_dir = Path(run_dir)
-    if which not in (None, "latest"):
-        path = _checkpoint_path(run_dir, which)
-        return read_checkpoint(path, keys), path
-    candidates = checkpoint_files(run_dir)
-    if not candidates:
-        raise CheckpointError(f"{run_dir} holds no checkpoint (latest.pt, checkpoints/step_*.pt): is it a run folder "
-                              f"of `livescene train`?")
-    failures: list[str] = []
-    for path in candidates:
-        try:
-            ckpt = read_checkpoint(path, keys)
-        except CheckpointError as exc:
-            failures.append(str(exc))
-            continue
-        if failures:
-            print(f"livescene: warning: {failures[0]}; using {path} (step {ckpt['step']}), the newest intact "
-                  f"checkpoint", file=sys.stderr)
-        return ckpt, path
-    raise CheckpointError(f"no intact checkpoint in {run_dir}: " + "; ".join(failures[:3])
-                          + ("" if len(failures) <= 3 else f" (and {len(failures) - 3} more)"))
-
-
-def checkpoint_config(ckpt: dict) -> TrainConfig:
-    """The config a checkpoint was trained with; runs from before the background slice read k = 0 there, runs
-    from before rigid parts have none."""
-    try:
-        cfg = from_dict(ckpt["config"])
-    except LiveSceneError as exc:
-        raise CheckpointError(f"the checkpoint's settings are unusable: {exc}") from exc
-    if "background_k" not in ckpt["config"].get("model", {}):
-        cfg.model.background_k = "zero"
-    if cfg.model.motion == "auto":  # runs from before rigid parts
-        cfg.model.motion = "none"
-    return cfg
-
-
-def load_run(run_dir: str | Path, device: str = "auto", checkpoint: str | int | None = None,
-             dataset: str | Path | None = None) -> Run:
-    """Reopen a run: its model at the latest (or given) checkpoint, its dataset views and config."""
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise CheckpointError(f"{run_dir} is not a run folder: train one with `livescene train DS --out {run_dir}`")
-    dev = select_device(device)
-    ckpt, path = load_checkpoint(run_dir, checkpoint)
-    cfg = checkpoint_config(ckpt)
-    ds_path = Path(dataset) if dataset else Path(str(ckpt["meta"].get("dataset", "")))
-    if not str(ds_path) or not ds_path.exists():
-        # a run renders with its dataset's cameras, frame times, image size and object names: without it there is
-        # nothing to place a camera or a frame time against, so a moved dataset must be pointed at
-        raise LiveSceneError(f"the run's dataset {ds_path} is gone (moved or deleted): pass --dataset NEW_PATH "
-                             f"(load_run(dataset=...)) to point at it")
-    # validated (an invalid dataset is refused here); the masks' contents were read when the run trained, so a
-    # render, eval or viewer start checks only their headers (0.4 s instead of 12 s on 300 frames at 960x540)
-    views = load_views(ds_path, cfg, check_masks=False)
-    check_run_dataset(ckpt["meta"], views, ds_path)
-    views.box_lo = np.asarray(ckpt["meta"]["box_lo"], dtype=np.float32)
-    views.box_hi = np.asarray(ckpt["meta"]["box_hi"], dtype=np.float32)
-    model = LiveSceneModel(cfg.model, views.dataset.n_objects)
-    try:
-        model.load_state_dict(ckpt["model"])
-    except RuntimeError as exc:
-        raise CheckpointError(f"{path} does not fit the model its settings describe (another version, or another "
-                              f"dataset's object count): {str(exc).splitlines()[0]}") from exc
-    model.to(dev).eval()
-    from .occupancy import OccupancyGrid  # the grid saved with the checkpoint (runs from before have none)
-
-    grid = OccupancyGrid.from_state(ckpt.get("occupancy"), dev) if ckpt.get("occupancy") else None
-    return Run(run_dir=run_dir, model=model, views=views, config=cfg, device=dev, step=int(ckpt["step"]),
-               checkpoint=path, occupancy=grid if grid is not None and grid.step == int(ckpt["step"]) else None)
-
-
-def check_run_dataset(meta: dict[str, Any], views: Views, ds_path: Path) -> None:
-    """The dataset is the one the run was trained on: same object names and (runs that stored them) frames."""
-    names = meta.get("names")
-    if names is not None and list(names) != list(views.names):
-        raise LiveSceneError(f"{ds_path} names the objects {views.names}, the run was trained on {list(names)}: "
-                             f"it is not the run's dataset")
-    frames = meta.get("frames")
-    fids = [f.fid for f in views.dataset.frames]
-    if frames is not None and list(frames) != fids:
-        raise LiveSceneError(f"{ds_path} has {len(fids)} frames, not the {len(frames)} the run was trained on "
-                             f"(or other ones): it is not the run's dataset")
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -271,7 +106,6 @@ class Trainer:
         self.device = select_device(device)
         self.max_minutes = max_minutes
         self.show_progress = show_progress
-        self.ckpt_dir = self.run_dir / "checkpoints"
         resume_ckpt = None
         if resume:
             if not checkpoint_files(self.run_dir):
@@ -302,8 +136,6 @@ class Trainer:
         self.data = RayData(views, self.device)
         self.hulls: dict[str, dict] = {}
         if resume_ckpt is None and self.model.motions is not None:
-            from .articulation import fit_hulls
-
             self.hulls = fit_hulls(self.model.motions, part_motions("rigid", views), views, self.data.mask.numpy())
         self.box = (torch.as_tensor(views.box_lo, device=self.device), torch.as_tensor(views.box_hi, device=self.device))
         groups = [{"params": [p for p in ps if p.requires_grad], "name": n}
@@ -364,22 +196,7 @@ class Trainer:
 
     def save_checkpoint(self) -> Path:
         t0 = time.perf_counter()
-        buf = io.BytesIO()
-        torch.save(self._state(), buf)
-        data = buf.getvalue()
-        path = self.ckpt_dir / f"step_{self.step:07d}.pt"
-        try:
-            with writing(path):
-                atomic.write_bytes(path, data)
-            with writing(self.run_dir / "latest.pt"):
-                atomic.write_bytes(self.run_dir / "latest.pt", data)
-        except OutputError as exc:
-            intact = [p.name for p in checkpoint_files(self.run_dir)]
-            raise OutputError(f"{exc}; " + (f"resume later with --resume (from {intact[0]})" if intact else
-                                            "no checkpoint was written")) from exc
-        old = sorted(self.ckpt_dir.glob("step_*.pt"))[: -max(self.cfg.keep_checkpoints, 1)]
-        for p in old:
-            p.unlink(missing_ok=True)
+        path = write_checkpoint(self.run_dir, self.step, self._state(), self.cfg.keep_checkpoints)
         self._ckpt_s = time.perf_counter() - t0
         return path
 
@@ -426,53 +243,20 @@ class Trainer:
 
     # -- one step ------------------------------------------------------------------------------------------------
     def losses(self, batch: dict[str, torch.Tensor]):
-        cfg, w = self.cfg, self.cfg.loss
-        model = self.model
+        cfg, model = self.cfg, self.model
         m = model.n_objects
         values = model.frame_values(batch["t"])
         out = render_rays(model, batch["origins"], batch["dirs"], values, self.box, cfg.sampler,
                           step=self.step, gen=self.gen_dev, with_logits=m > 0 and self.data.has_masks)
-        terms: dict[str, torch.Tensor] = {"rgb": ((out.rgb - batch["rgb"]) ** 2).mean()}
-        if w.interlevel and out.proposals:
-            terms["interlevel"] = L.interlevel_loss(out.edges, out.weights, out.proposals)
-        if w.distortion:
-            terms["distortion"] = L.distortion_loss(out.edges, out.weights, out.near, out.far)
-        if out.logits is not None:
-            target = batch["mask"].clone()
-            target[target == m] = model.cfg.max_objects  # background is the last slot
-            if w.focal:
-                terms["focal"] = L.focal_loss(out.logits, target, w.focal_alpha, w.focal_gamma)
-            if w.repulsion:
-                terms["repulsion"] = L.repulsion_loss(out.logits, target, w.repulsion_k, self.gen)
-        if m and w.var:
-            terms["var"] = L.var_loss(values[:, :m], batch["labels"], batch["given"])
-        if w.var_smooth:
-            terms["var_smooth"] = L.time_smoothness(model.variable.line)
-        if cfg.reg_every > 1 and self.step % cfg.reg_every:
-            return terms, out
-        grids = [p.grid for p in model.proposals]
-        if w.k_smooth:
-            terms["k_smooth"] = L.k_smoothness(model.field.grid)
-        if w.k_smooth_proposal:
-            terms["k_smooth_proposal"] = sum(L.k_smoothness(g) for g in grids)
-        if w.l1_k:
-            terms["l1_k"] = L.l1_kplanes(model.field.grid)
-        if w.l1_k_proposal:
-            terms["l1_k_proposal"] = sum(L.l1_kplanes(g) for g in grids)
-        if w.plane_tv:
-            terms["plane_tv"] = L.plane_tv(model.field.grid)
-        if w.plane_tv_proposal:
-            terms["plane_tv_proposal"] = sum(L.plane_tv(g) for g in grids)
-        if w.plane_tv_prob:
-            terms["plane_tv_prob"] = L.plane_tv(model.prob.grid)
+        regularise = not (cfg.reg_every > 1 and self.step % cfg.reg_every)
+        terms = L.loss_terms(L.LossInputs(model, out, batch, values, self.gen), cfg.loss, regularise)
         return terms, out
 
     def train_step(self) -> dict[str, float]:
         cfg = self.cfg
         batch = self.data.sample(cfg.batch_rays, self.gen, cfg.keyframe_fraction)
         terms, _ = self.losses(batch)
-        weights = vars(cfg.loss)
-        total = sum(weights[k] * (cfg.reg_every if k in REGULARISERS else 1) * v for k, v in terms.items())
+        total = L.total_loss(terms, cfg.loss, cfg.reg_every)
         time_frac = self.elapsed / self.train_budget() if self.max_minutes else 0.0
         lr = cfg.lr * self.lr_scale * lr_factor(self.step, cfg, time_frac)
         for g in self.opt.param_groups:
@@ -515,19 +299,15 @@ class Trainer:
     # -- evaluation ------------------------------------------------------------------------------------------------
     def heldout_psnr(self, i: int, max_side: int) -> float:
         """PSNR of frame i rendered with its long side at most `max_side` (the ground truth area-resized to match)."""
-        from .render import render_view
-
         run = Run(self.run_dir, self.model, self.views, self.cfg, self.device, self.step,
                   occupancy=getattr(self, "occupancy", None))
         small = within_side(self.views.intrinsics[i], max_side)
         self.model.eval()
         out = render_view(run, self.views.c2w_gl[i], small, None, time=float(self.views.times[i]))
         self.model.train()
-        import cv2
-
         gt = self.data.rgb[i].numpy()
         gt = cv2.resize(gt, (small.w, small.h), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
-        return L.psnr(np.mean((out["rgb"] - gt) ** 2))
+        return L.psnr(scored_mse(out["rgb"], gt, transient_at(self.views, i, small.w, small.h)))  # no hand scored
 
     def eval_pool(self) -> list[int]:
         """Frames the evaluations render: the held-out ones (the training frames when nothing is held out)."""
@@ -537,8 +317,6 @@ class Trainer:
     def final_frames(self) -> list[int]:
         """The final evaluation's `final_eval_frames` frames, spread through the video (fixed for the run; the time
         budget asks for them every step)."""
-        from .evaluate import pick_frames
-
         return pick_frames(self.eval_pool(), self.cfg.final_eval_frames)
 
     @property
@@ -575,8 +353,6 @@ class Trainer:
 
     # -- loop ----------------------------------------------------------------------------------------------------
     def fit(self) -> dict[str, Any]:
-        from tqdm import tqdm
-
         cfg = self.cfg
         ds = self.views.dataset
         with writing(self.run_dir / "config.yaml"):
@@ -598,8 +374,6 @@ class Trainer:
         if self.step == 0:
             self.save_checkpoint()
         if self.max_minutes and not self._grid_s:
-            from .occupancy import build_cost
-
             self._grid_s = build_cost(self.model, self.box)
         if self.max_minutes and not self._eval_s_per_px:  # a time limit needs the final evaluation's cost up front
             first = self.quick_frame
@@ -658,8 +432,7 @@ class Trainer:
                 break
         bar.close()
         t0 = time.perf_counter()
-        from .occupancy import build_grid  # once, for the final model: saved with its checkpoint, renders skip air
-
+        # once, for the final model: saved with its checkpoint, renders skip air
         self.occupancy = build_grid(self.model, self.box, self.step)
         self.overhead += time.perf_counter() - t0
         self.save_checkpoint()
@@ -674,36 +447,6 @@ class Trainer:
                 "eval_psnr": final["psnr"], "eval_frames": len(final["frames"]),
                 "eval_on": "held-out" if held else "training", "rollbacks": self.retries,
                 **({"threads": self.threads_measured} if getattr(self, "threads_measured", None) else {})}
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# CLI
-# ----------------------------------------------------------------------------------------------------------------
-def add_arguments(p) -> None:
-    p.add_argument("dataset", type=Path, help="LiveScene dataset folder (ours, InterReal or OmniSim layout)")
-    p.add_argument("--out", type=Path, required=True, help="run folder (checkpoints, metrics, config)")
-    p.add_argument("--preset", default="auto", help=f"auto (gpu on CUDA, else cpu), one of {preset_names()} or a YAML file")
-    p.add_argument("--steps", type=int, default=0, help="training steps (default: the preset's)")
-    p.add_argument("--max-minutes", type=float, default=0.0,
-                   help="time limit for the whole command: training stops early enough that loading, evaluations, "
-                        "checkpoints and the final evaluation fit in it")
-    p.add_argument("--device", default="auto", help="auto | cpu | cuda")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out exactly where it stopped")
-    p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a setting, e.g. --set model.features=32 --set loss.var=0.5 (repeatable)")
-    p.add_argument("--threads", type=int, default=0,
-                   help="CPU threads (0 = auto: the first steps are timed at all cores and at 1 thread, and "
-                        "the faster is kept; a busy machine can make more threads slower)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar (logs still go to metrics.jsonl)")
-    p.epilog = ("examples:\n"
-                "  livescene train out/ds --out out/run                       # cpu preset on CPU, gpu preset on CUDA\n"
-                "  livescene train out/ds --out out/run --preset cpu --max-minutes 15\n"
-                "  livescene train out/ds --out out/run --resume              # after a kill, continues exactly\n"
-                "  livescene train out/ds --out out/run --set model.reject_threshold=0 --steps 2000\n"
-                "  livescene train out/ds --out out/run --set model.motion=none   # the paper's k-axis alone, even\n"
-                "                                                   # when out/ds/articulation.json has part motions\n"
-                f"{JEMALLOC_ENV}=1 re-runs it under jemalloc (slower on the machine it was measured on; see livescene.device)")
 
 
 def train(dataset: str | Path, out: str | Path, cfg: TrainConfig, device: str = "auto", resume: bool = False,
@@ -771,119 +514,3 @@ def finished_summary(trainer: "Trainer") -> dict[str, Any] | None:
     if not rep or rep.get("status") != "ok" or (rep.get("figures") or {}).get("steps") != trainer.step:
         return None
     return {**rep["figures"], "finished": True}
-
-
-@contextlib.contextmanager
-def run_lock(run_dir: Path):
-    """One process per run folder (a second `--resume` while one trains would interleave checkpoints); the lock
-    goes away with the process, even on kill -9."""
-    with writing(run_dir):
-        run_dir.mkdir(parents=True, exist_ok=True)
-        fh = open(run_dir / ".lock", "a+")
-    with fh:
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise LiveSceneError(f"{run_dir} is being trained by another process: wait for it, or stop it first") from None
-        yield
-
-
-def remove_stale_temporaries(run_dir: Path) -> list[Path]:
-    """Delete the temporary files (`.NAME.XXXX.tmp`) an atomic write leaves when it is killed; under `run_lock`
-    no other writer can own them."""
-    gone = []
-    for folder in (run_dir, run_dir / "checkpoints", run_dir / "reports"):
-        for p in folder.glob(".*.tmp") if folder.is_dir() else []:
-            with contextlib.suppress(OSError):
-                p.unlink()
-                gone.append(p)
-    return gone
-
-
-# below this, the renders are not to be trusted (held-out PSNR of runs that are still far from converged); the
-# label figures are interreal.dataset.MIN_LABELS / MIN_LABEL_FRACTION
-LOW_FIT_PSNR = 24.0  # renders below this are visibly blurry (the stress suite's usable threshold)
-
-
-MAX_STATE_ERROR = 0.1
-
-
-def learned_states(trainer) -> tuple[np.ndarray, Any]:
-    """(N, M) states the per-frame variable gives every frame after training, and the views."""
-    views = trainer.views
-    with torch.no_grad():
-        values = trainer.model.frame_values(torch.as_tensor(views.times, device=trainer.device))
-    return values[:, : len(views.names)].cpu().numpy(), views
-
-
-def state_warnings(values: np.ndarray, views) -> list[tuple[str, str]]:
-    """Warn when the learned states miss the labels: on training frames (not fitted) or on held-out labelled frames
-    (never trained on, so their error estimates the error on every unlabelled frame)."""
-    labels, given_all = views.dataset.label_matrix()
-    out = []
-    for k, name in enumerate(views.names):
-        for which, frames in (("labelled training", views.train), ("held-out labelled", views.held_out)):
-            idx = [i for i in frames if given_all[i, k]]
-            if not idx:
-                continue
-            err = float(np.abs(values[idx, k] - labels[idx, k]).mean())
-            if err > MAX_STATE_ERROR:
-                out.append((f"'{name}': learned states miss the {which} frames by {err:.2f} on average: its states "
-                            f"are unreliable (train longer, or add labels)", "states-unreliable"))
-    return out
-
-
-def label_warnings(views) -> list[tuple[str, str]]:
-    """(message, cause) for each object whose state labels on the training frames are too sparse for Lvar to pin
-    its states down (interreal.dataset.label_shortage: the figures `interreal validate` warns with)."""
-    from interreal.dataset import label_shortage
-
-    counts = {name: int(views.given[views.train, k].sum()) for k, name in enumerate(views.names)}
-    return [(m.replace(" frames (", " training frames (", 1), "few-labels")
-            for _, m in label_shortage(counts, len(views.train))]
-
-
-def main(args) -> int:
-    reexec_with_jemalloc(("livescene", "train"))
-    configure_threads(args.threads)
-    device = select_device(args.device)
-    preset = args.preset if args.preset != "auto" else ("gpu" if device.type == "cuda" else "cpu")
-    cfg = load_preset(preset)
-    cfg = apply_overrides(cfg, args.overrides)
-    if args.steps:
-        cfg.steps = args.steps
-    if args.seed is not None:
-        cfg.seed = args.seed
-    if args.resume and not args.steps:
-        cfg.steps = 0
-    if args.steps < 0:
-        raise LiveSceneError(f"--steps {args.steps}: give a positive number of steps")
-    if not args.resume:
-        check_config(cfg)  # before any data is read
-    elif args.overrides:
-        print("livescene train: warning: --set is ignored with --resume (the run continues with its own settings)",
-              file=sys.stderr)
-    if args.max_minutes < 0 or not math.isfinite(args.max_minutes):
-        raise LiveSceneError(f"--max-minutes {args.max_minutes}: give a positive number of minutes (0 = no limit)")
-    summary = train(args.dataset, args.out, cfg, device=str(device), resume=args.resume,
-                    max_minutes=args.max_minutes, show_progress=not args.no_progress,
-                    measure_threads=args.threads <= 0)
-    if summary.get("finished"):
-        print(f"livescene train: {args.out} already finished ({summary['steps']} steps): nothing to do, its outputs "
-              f"are unchanged (pass --steps N above {summary['steps']} with --resume to train further)")
-        return 0
-    print(f"livescene train: {summary['steps']} steps in {summary['elapsed_s'] / 60:.1f} min "
-          f"({summary['stop']}); {psnr_line(summary)} -> {args.out}")
-    return 0
-
-
-def psnr_line(summary: dict[str, Any]) -> str:
-    """'held-out PSNR (3 frames) 27.10 dB', or with nothing held out what the figure really is."""
-    n = int(summary.get("eval_frames", summary.get("heldout_eval_frames", 0)))
-    frames = f"{n} frame{'s' if n != 1 else ''}"
-    psnr = summary.get("eval_psnr", summary.get("heldout_psnr"))
-    if psnr is None:
-        return "no PSNR"
-    if summary.get("eval_on", "held-out") == "held-out":
-        return f"held-out PSNR ({frames}) {psnr:.2f} dB"
-    return f"no frame is held out (too few frames, or holdout_every <= 1): PSNR on {frames} it trained on {psnr:.2f} dB"

@@ -3,6 +3,9 @@
     python recipes/bench_all.py --quick --out bench/          # minutes
     python recipes/bench_all.py --out bench/                  # the full figures (an hour or more on 2 cores)
     python recipes/bench_all.py --out bench/ --skip-run       # only rebuild report.md from existing JSON
+
+Each run also redraws the README's speed-against-accuracy charts, docs/charts/<name>.png (`charts.py`), from
+DIR/<name>.json, or from the README's measured figures (docs/charts/results.json) for a benchmark with no JSON in DIR.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from benchlib import bench_args
+from charts import CHART_DIR, write_charts
 
 HERE = Path(__file__).resolve().parent
 BENCHES = ["synth", "poses", "masks", "train", "ground", "model_size", "stress"]
@@ -95,11 +99,15 @@ def main() -> int:
     args = bench_args("all", __doc__.splitlines()[0], lambda p: (
         p.add_argument("--skip-run", action="store_true", help="only rebuild report.md from existing JSON"),
         p.add_argument("--only", default="", help="comma-separated benchmarks (default all)"),
-        p.add_argument("--timeout-min", type=float, default=120.0, help="per-benchmark time limit")))
+        p.add_argument("--timeout-min", type=float, default=120.0, help="per-benchmark time limit"),
+        p.add_argument("--charts", type=Path, default=CHART_DIR, help=f"folder for the README charts (default "
+                       f"{CHART_DIR.relative_to(HERE.parent)})")))
     names = [n for n in BENCHES if not args.only or n in args.only.split(",")]
     statuses = [] if args.skip_run else [run_bench(n, args.out, args.quick, args.timeout_min * 60) for n in names]
     path = build_report(args.out, statuses)
     print(f"report: {path}")
+    for chart in write_charts(args.out, args.charts):
+        print(f"chart: {chart} ({chart.stat().st_size // 1024} KB)")
     return 0 if all(s["status"] == "ok" for s in statuses) else 1
 
 

@@ -88,7 +88,8 @@ def scene_figures(ds: Path, box: list[float]) -> dict[str, float]:
 
 def train_and_eval(ds: Path, cap: Path, run_dir: Path, capacity: float, box: list[float], args) -> dict[str, Any]:
     from livescene.config import load_preset
-    from livescene.evaluate import CaptureTruth, evaluate
+    from interreal.synth.evaltruth import CaptureTruth
+    from livescene.evaluate import evaluate
     from livescene.trainer import load_run, train
 
     if run_dir.exists():

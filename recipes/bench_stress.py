@@ -142,7 +142,8 @@ def run_level(stress: str, field: str, level: Any, train: bool, work: Path, fram
         warnings = _collect(ds, run)
     if train:
         from livescene.config import load_preset
-        from livescene.evaluate import CaptureTruth, evaluate
+        from interreal.synth.evaltruth import CaptureTruth
+        from livescene.evaluate import evaluate
         from livescene.trainer import load_run
         from livescene.trainer import train as fit
 

@@ -153,7 +153,8 @@ def train_and_eval(ds: Path, cap: Path, run_dir: Path, minutes: float, box: list
     import shutil
 
     from livescene.config import apply_overrides, load_preset
-    from livescene.evaluate import CaptureTruth, evaluate
+    from interreal.synth.evaltruth import CaptureTruth
+    from livescene.evaluate import evaluate
     from livescene.trainer import load_run, train
 
     if run_dir.exists():
@@ -265,7 +266,8 @@ def main() -> int:
         charts(args.out / "train.png", runs)
 
     if "main-eval" in only:  # re-evaluate an existing main run (e.g. after changing the evaluation)
-        from livescene.evaluate import CaptureTruth, evaluate
+        from interreal.synth.evaltruth import CaptureTruth
+        from livescene.evaluate import evaluate
         from livescene.trainer import load_run
 
         old = [r for r in json.loads(results_path.read_text())["runs"] if r["variant"] == "main"] if results_path.exists() else []

@@ -494,7 +494,7 @@ def test_eval_refuses_the_truth_of_another_capture(case, base, tmp_path, capsys)
 
 def test_eval_accepts_its_own_capture(base):
     """The camera check passes the capture the dataset was made from (so the refusals above are not luck)."""
-    from livescene.evaluate import check_same_capture
+    from interreal.synth.evaltruth import check_same_capture
     from livescene.trainer import load_run
     from interreal.synth.capture import Capture
 

@@ -266,3 +266,25 @@ def test_atomic_write_gives_the_usual_file_mode(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert p.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_point_cloud_follows_ply_file_path(tiny_dataset: Path):
+    """The point cloud is the file transforms.json's `ply_file_path` names (nerfstudio's key), `sparse_pc.ply`
+    without it; a path leaving the dataset is not followed."""
+    from interreal.sfm import write_ply
+
+    rng = np.random.default_rng(0)
+    near, far = rng.normal(0, 0.1, (20, 3)), rng.normal(5, 0.1, (30, 3))
+    colours = np.zeros((50, 3), np.uint8)
+    write_ply(tiny_dataset / "sparse_pc.ply", near, colours[:20])
+    write_ply(tiny_dataset / "clouds" / "dense.ply", far, colours[:30])
+    ds = D.load_dataset(tiny_dataset)
+    np.testing.assert_allclose(D.read_point_cloud(ds.root, ds.extra), near, atol=1e-6)  # float32 on disk
+    meta = json.loads((tiny_dataset / "transforms.json").read_text())
+    for rel, expect in (("clouds/dense.ply", far), ("./clouds/dense.ply", far), ("../elsewhere.ply", near)):
+        meta["ply_file_path"] = rel
+        (tiny_dataset / "transforms.json").write_text(json.dumps(meta))
+        ds = D.load_dataset(tiny_dataset)
+        np.testing.assert_allclose(D.read_point_cloud(ds.root, ds.extra), expect, atol=1e-6)
+    (tiny_dataset / "sparse_pc.ply").write_bytes(b"not a ply")
+    assert D.read_point_cloud(tiny_dataset, {}) is None

@@ -114,3 +114,23 @@ def test_unchanged_rerun_reuses_the_frames(tmp_path, capsys):
     first[0].unlink()  # a missing image: the stage runs again
     assert extract_frames(video, ds, every=2) == first and first[0].exists()
     assert len(extract_frames(video, ds, every=3)) != len(first)  # another setting runs again
+
+
+def test_frames_flags_come_from_the_config_fields():
+    """`interreal frames` flags are generated from `FramesConfig` (--target / --every exclusive, --keep a list)."""
+    import argparse
+    from dataclasses import asdict
+
+    from interreal.frames import FramesConfig, add_arguments, frames_options
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    flags = {s for a in p._actions for s in a.option_strings} - {"-h", "--help"}
+    assert flags == {"--target", "--every", "--long-side", "--keep"}
+    assert frames_options(p.parse_args(["in.mp4", "ds"])) == asdict(FramesConfig())
+    opts = frames_options(p.parse_args(["in.mp4", "ds", "--every", "3", "--long-side", "640", "--keep", "4", "9"]))
+    assert opts == {"target": None, "every": 3, "long_side": 640, "keep": [4, 9]}
+    with pytest.raises(SystemExit):
+        p.parse_args(["in.mp4", "ds", "--every", "3", "--target", "20"])
+    with pytest.raises(InputError, match="unknown frames options"):
+        extract_frames("in.mp4", "ds", long_sides=640)

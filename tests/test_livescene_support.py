@@ -12,7 +12,7 @@ def truth(tmp_path_factory):
     from interreal.synth import SynthConfig, truth_dataset, write_capture
     from livescene.config import load_preset
     from livescene.data import load_views
-    from livescene.evaluate import CaptureTruth
+    from interreal.synth.evaltruth import CaptureTruth
 
     root = tmp_path_factory.mktemp("support")
     write_capture(SynthConfig(frames=40, width=96, height=72, seed=0), root / "cap", progress=False)

@@ -499,3 +499,31 @@ def test_unchanged_rerun_reuses_the_masks(tmp_path):
     os.utime(key, ns=(key.stat().st_atime_ns, key.stat().st_mtime_ns + 10 ** 9))  # keyframe edited
     propagate(ds, tmp_path / "keys", preview="none", suggest=2, progress=False)
     assert [p.stat().st_mtime_ns for p in files] != stamps
+
+
+def test_masks_flags_come_from_the_config_fields():
+    """`interreal masks` flags are generated from `MasksConfig`: the historic names, each field's default when not
+    given, the typed value when given, and the same settings reach `propagate`'s TrackConfig."""
+    import argparse
+
+    from interreal.masks import MasksConfig, add_arguments, masks_options
+    from interreal.masks.stage import make_config
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    flags = {s for a in p._actions for s in a.option_strings} - {"-h", "--help"}
+    assert flags == {"--keyframes", "--quiet", "--work-size", "--flow", "--preset", "--appearance", "--rigid",
+                     "--no-fusion", "--no-refine", "--suggest", "--preview"}
+    opts = masks_options(p.parse_args(["ds", "--keyframes", "kf"]))
+    defaults = dataclasses.asdict(MasksConfig())
+    assert opts == {k: defaults[k] for k in opts} and len(opts) == len(flags) - 2
+    opts = masks_options(p.parse_args(["ds", "--keyframes", "kf", "--work-size", "0", "--no-fusion", "--no-refine",
+                                       "--appearance", "0.5", "--flow", "farneback"]))
+    assert opts["work_long_side"] == 0 and opts["fusion"] is False and opts["refine"] is False
+    cfg = make_config(**opts)
+    assert cfg.work_long_side == 0 and not cfg.fusion and cfg.refine_radius == 0 and cfg.out_radius == 0
+    assert cfg.appearance.weight == 0.5 and cfg.flow.method == "farneback"
+    with pytest.raises(SystemExit):
+        p.parse_args(["ds", "--keyframes", "kf", "--preview", "gif"])
+    with pytest.raises(InputError, match="unknown masks options"):
+        make_config(work_size=0)

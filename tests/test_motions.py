@@ -120,6 +120,7 @@ def test_measure_part_tries_another_mapper_seed_when_the_first_model_is_bent(mon
     monkeypatch.setattr(motions, "match_part", lambda *a, **k: tmp_path / "database.db")
     monkeypatch.setattr(motions, "map_part", lambda pc, ds, db, out, cfg, seed: seeds.append(seed) or seed)
     monkeypatch.setattr(motions, "part_views", lambda rec, ds: bent if rec == 0 else good)
+    monkeypatch.setattr(motions, "measure_part_pnp", lambda *a, **k: (None, {}))  # the other route finds nothing
     motion, fig = motions.measure_part(None, None, [], tmp_path, states, known, motions.MotionConfig(attempts=3))
     assert seeds == [0, 1] and fig["attempt"] == 1 and fig["attempts"] == 2
     assert motion.kind == "slide" and fig["state_rmse_from_pose"] < 0.03
@@ -248,3 +249,27 @@ def test_motions_of_a_simulated_capture_match_the_truth(tmp_path):
     before = (ds / "articulation.json").stat().st_mtime_ns
     assert cli.main(["motions", str(ds)]) == 0
     assert (ds / "articulation.json").stat().st_mtime_ns == before
+
+
+def test_motion_flags_come_from_the_config_fields():
+    """`interreal motions` flags are generated from `MotionConfig`'s `option` fields."""
+    import argparse
+    from dataclasses import asdict
+
+    from interreal.errors import InputError
+    from interreal.motions import MotionConfig, add_arguments, estimate_motions
+    from interreal.options import values_from_args
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    flags = {s for a in p._actions for s in a.option_strings} - {"-h", "--help"}
+    assert flags == {"--erode", "--min-pixels", "--route", "--verbose", "--force"}
+    defaults = asdict(MotionConfig())
+    opts = values_from_args(MotionConfig, p.parse_args(["ds"]))
+    assert opts == {k: defaults[k] for k in ("erode", "min_pixels", "route", "verbose")}
+    opts = values_from_args(MotionConfig, p.parse_args(["ds", "--erode", "4", "--route", "pnp", "--verbose"]))
+    assert opts == {"erode": 4, "min_pixels": 400, "route": "pnp", "verbose": True}
+    with pytest.raises(SystemExit):
+        p.parse_args(["ds", "--route", "icp"])
+    with pytest.raises(InputError, match="unknown motion options"):
+        estimate_motions("ds", erosion=4)

@@ -108,3 +108,28 @@ def test_process_video_end_to_end(tmp_path, capsys):
     assert {p.name: p.stat().st_mtime_ns for p in (ds / "images").glob("*.png")} == stamps
     steps = json.loads((ds / "reports" / "poses.json").read_text())["steps"]
     assert steps.get("reuse", {}).get("reused") or steps["features"]["reused"], steps
+
+
+def test_process_flags_come_from_the_stage_configs(tmp_path, monkeypatch):
+    """`interreal process` takes the frames, masks and poses flags from `FramesConfig`, `MasksConfig` and
+    `SfMConfig`, and hands each stage its own options."""
+    import argparse
+
+    from interreal.frames import FramesConfig
+    from interreal.masks.config import MasksConfig
+    from interreal.options import flag_fields, flag_name
+    from interreal.sfm import SfMConfig
+
+    p = argparse.ArgumentParser()
+    proc.add_arguments(p)
+    flags = {s for a in p._actions for s in a.option_strings}
+    for cls in (FramesConfig, MasksConfig, SfMConfig):
+        assert {flag_name(f) for f in flag_fields(cls)} <= flags, cls
+    calls = {}
+    monkeypatch.setattr(proc, "process", lambda src, ds, **kw: calls.update(kw) or {"stale": []})
+    monkeypatch.setattr(proc, "read_report", lambda ds, stage: None)
+    proc.main(p.parse_args(["in.mp4", str(tmp_path), "--every", "2", "--work-size", "0", "--no-fusion",
+                            "--matcher", "exhaustive"]))
+    assert calls["every"] == 2 and calls["long_side"] == 1600 and calls["target"] is None
+    assert calls["work_long_side"] == 0 and calls["fusion"] is False and calls["preview"] == "both"
+    assert calls["matcher"] == "exhaustive" and calls["sfm_long_side"] == 1000

@@ -44,8 +44,8 @@ def test_fast_matches_exact_and_reads_less(rigid_run):
     assert run.occupancy is not None  # saved with the checkpoint at the end of training
     i, c2w, intr = _view(run)
     exact = render_view(run, c2w, intr, {"door": 0.3}, fast=False)
-    fast = render_view(run, c2w, intr, {"door": 0.3})
-    no_grid = render_view(run, c2w, intr, {"door": 0.3}, occupancy=False)
+    fast = render_view(run, c2w, intr, {"door": 0.3}, tolerance=0)  # the marcher alone: every pixel traced
+    no_grid = render_view(run, c2w, intr, {"door": 0.3}, occupancy=False, tolerance=0)
     assert fast["fast"] and not exact["fast"] and exact["march"] is None
     assert _psnr(fast["rgb"], exact["rgb"]) > 40.0
     assert _psnr(no_grid["rgb"], exact["rgb"]) > 50.0  # termination alone is exact to 1e-4
@@ -57,7 +57,7 @@ def test_fast_matches_exact_and_reads_less(rigid_run):
     assert st["evaluated"] <= st0["evaluated"] < st0["samples"]  # terminated rays read nothing further
     assert fast["seconds"] > 0 and fast["rays"] == intr.w * intr.h
     # a few hundred steps leave fog in the air (density ~0.5 a unit): a coarser threshold skips it, at a cost
-    coarse = render_view(run, c2w, intr, {"door": 0.3}, threshold=run.occupancy.threshold(0.2))
+    coarse = render_view(run, c2w, intr, {"door": 0.3}, threshold=run.occupancy.threshold(0.2), tolerance=0)
     assert coarse["march"]["evaluated"] < st["evaluated"]
 
 
@@ -278,7 +278,8 @@ def test_eval_and_render_report_their_speed(rigid_run, tmp_path):
 
 def test_a_state_change_rerenders_only_the_rays_a_part_can_reach(tmp_path):
     """With every object moving rigidly, the same camera at another state re-renders only the rays that meet a
-    cell some part's hull can reach (`OccupancyGrid.reach`) and reuses the rest: the same image as a fresh one."""
+    cell some part's hull can reach (`OccupancyGrid.reach`, `adaptive.reach_pixels`) and reuses the rest: the
+    same image as a fresh one when every pixel is traced, within the interpolation's error when not."""
     from types import SimpleNamespace
 
     from interreal.conventions import opencv_to_opengl
@@ -298,13 +299,39 @@ def test_a_state_change_rerenders_only_the_rays_a_part_can_reach(tmp_path):
     c2w[:3, 3] = [0.0, 0.0, -1.9]  # inside the box, looking along +z at the cube
     intr = Intrinsics(w=32, h=24, fl_x=10.0, fl_y=10.0, cx=16.0, cy=12.0, camera_model="PINHOLE")
     c2w_gl = opencv_to_opengl(c2w)
-    first = render_view(run, c2w_gl, intr, {"door": 0.0})
-    moved = render_view(run, c2w_gl, intr, {"door": 1.0})
+    first = render_view(run, c2w_gl, intr, {"door": 0.0}, tolerance=0)
+    moved = render_view(run, c2w_gl, intr, {"door": 1.0}, tolerance=0)
     assert first["rays_reused"] == 0 and 0 < moved["rays_reused"] < moved["rays"]
     assert moved["march"]["rays"] == moved["rays"] - moved["rays_reused"]
-    run._state_cache = None
-    fresh = render_view(run, c2w_gl, intr, {"door": 1.0})
+    run._image_caches = None
+    fresh = render_view(run, c2w_gl, intr, {"door": 1.0}, tolerance=0)
     exact = render_view(run, c2w_gl, intr, {"door": 1.0}, fast=False)
     assert np.abs(moved["rgb"] - fresh["rgb"]).max() < 1e-6 and np.abs(moved["depth"] - fresh["depth"]).max() < 1e-5
     assert _psnr(moved["rgb"], exact["rgb"]) > 40.0
     assert np.abs(first["rgb"] - moved["rgb"]).max() > 0.1  # the cube did move
+    render_view(run, c2w_gl, intr, {"door": 0.0})  # interpolated images: reused pixels, the same picture
+    again = render_view(run, c2w_gl, intr, {"door": 1.0})
+    assert again["rays_reused"] > 0 and _psnr(again["rgb"], exact["rgb"]) > 35.0
+
+
+def test_fast_render_traces_and_reads_a_fraction_of_the_exact_one(rigid_run):
+    """The default fast render (`livescene.adaptive`): a fraction of the pixels traced and of the samples read,
+    within a small PSNR of the exact render; every pixel traced (tolerance 0) is the exact render."""
+    from livescene.render import render_view
+    from livescene.trainer import load_run
+
+    run = load_run(rigid_run, device="cpu")
+    i = run.views.train[3]
+    intr = run.views.intrinsics[i].scaled(128, 96)
+    c2w = run.views.c2w_gl[i]
+    exact = render_view(run, c2w, intr, {"door": 0.3}, fast=False)
+    fast = render_view(run, c2w, intr, {"door": 0.3})
+    every = render_view(run, c2w, intr, {"door": 0.3}, tolerance=0)  # every pixel traced
+    per_ray = sum(run.config.sampler.proposal_samples) + run.config.sampler.samples
+    assert every["traced"] == 128 * 96 and _psnr(every["rgb"], exact["rgb"]) > 40.0
+    assert fast["traced"] < 0.55 * 128 * 96  # flat regions interpolated (at 2x the training size)
+    assert fast["march"]["evaluated"] < 0.55 * 128 * 96 * per_ray  # field reads: >= 1.8x fewer
+    assert _psnr(fast["rgb"], exact["rgb"]) > 35.0
+    assert np.abs(fast["probs"] - exact["probs"]).mean() < 0.02
+    ok = exact["acc"] > 0.5
+    assert np.median(np.abs(fast["depth"] - exact["depth"])[ok]) < 0.02

@@ -213,7 +213,8 @@ def test_motions_name_the_labels_that_disagree_and_report_progress(monkeypatch, 
     monkeypatch.setattr(motions, "match_part", lambda *a, **k: tmp_path / "database.db")
     monkeypatch.setattr(motions, "map_part", lambda *a, **k: 0)
     monkeypatch.setattr(motions, "part_views", lambda rec, ds: pv)
-    motions.measure_part(None, None, [], tmp_path, states, known, motions.MotionConfig(attempts=3), phases.append)
+    motions.measure_part(None, None, [], tmp_path, states, known, motions.MotionConfig(attempts=3, route="sfm"),
+                         phases.append)
     assert phases == ["matching", "reconstruction 1/3"]
 
 

@@ -396,3 +396,27 @@ def test_rotation_error_in_both_gauges():
     assert err["rot_err_deg_median"] > 0.01  # the centre fit tilts by what the noise turns the path
     assert err["gauge_gap_deg"] == pytest.approx(err["rot_err_deg_median"], rel=1e-3)  # exact rotations: all tilt
     assert err["scale"] == pytest.approx(0.5, rel=0.01)
+
+
+def test_pose_flags_come_from_the_config_fields():
+    """`interreal poses` / `process` flags are generated from `SfMConfig`: the historic names, each field's default
+    when not given, the typed value when given."""
+    import argparse
+    from dataclasses import asdict
+
+    from interreal.sfm import SfMConfig, add_sfm_options, sfm_options
+
+    p = argparse.ArgumentParser()
+    add_sfm_options(p)
+    flags = {s for a in p._actions for s in a.option_strings} - {"-h", "--help"}
+    assert flags == {"--sfm-long-side", "--matcher", "--mapper", "--camera-model", "--max-features", "--key-stride",
+                     "--fine-octave-stride", "--principal-point", "--ba-loss", "--orientation", "--refine-tracks",
+                     "--extend-tracks", "--no-masks", "--undistort", "--verbose"}
+    defaults = asdict(SfMConfig())
+    opts = sfm_options(p.parse_args([]))
+    assert opts == {k: defaults[k] for k in opts} and len(opts) == len(flags)
+    opts = sfm_options(p.parse_args(["--no-masks", "--sfm-long-side", "800", "--matcher", "exhaustive", "--verbose"]))
+    assert opts["use_masks"] is False and opts["sfm_long_side"] == 800 and opts["matcher"] == "exhaustive"
+    assert opts["verbose"] is True and opts["undistort"] is False
+    with pytest.raises(SystemExit):
+        p.parse_args(["--ba-loss", "l2"])

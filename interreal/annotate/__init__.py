@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import InputError
+from .server import AnnotateServer
 
 __all__ = ["add_arguments", "main"]
 
@@ -33,8 +34,6 @@ enter / double-click = close the polygon, escape = cancel the shape, 1-9 = choos
 
 
 def main(args) -> int:
-    from .server import AnnotateServer
-
     ds: Path = args.dataset
     if not ds.is_dir():
         raise InputError(f"{ds} is not a folder: give the dataset folder (with images/ inside)")

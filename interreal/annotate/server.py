@@ -22,6 +22,7 @@ rules below are enforced by `interreal.localserver.LocalGuard`, shared with `liv
 from __future__ import annotations
 
 import base64
+import html
 import inspect
 import json
 import math
@@ -33,6 +34,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..errors import InputError, InterRealError, MissingExtraError
+from ..layout import KEYFRAMES_DIR
 from ..localserver import LocalGuard, LocalServer, MiB, allowed_hosts
 from ..localserver import machine_addresses  # noqa: F401  (the addresses a wildcard bind is reached by)
 from .store import Conflict, DatasetStore, Outside, UnknownFrame, encode_index_png, finite_number
@@ -326,7 +328,7 @@ def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1",
     def propagate():
         if not store.keyframe_fids():
             raise InterRealError("draw at least one keyframe mask before propagating")
-        return prop.start(store.inside(store.ds / "keyframes"))
+        return prop.start(store.inside(store.ds / KEYFRAMES_DIR))
 
     @app.get("/api/propagate")
     def propagate_status():
@@ -442,8 +444,6 @@ class Fields:
 
 
 def _html(text: str) -> str:
-    import html
-
     return html.escape(text)
 
 

@@ -14,33 +14,36 @@ the user can overwrite or remove it; untouched bad entries are kept as they are 
 
 from __future__ import annotations
 
-import hashlib
-import math
 import threading
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import yaml
+from PIL import UnidentifiedImageError
 
 from .. import atomic, labels as L
 from ..conventions import (IMAGES_DIR, LABELS_FILE, MAPPING_FILE, MASKS_DIR, PROMPTS_FILE, REPORTS_DIR, UNANNOTATED,
                            fid_of_index, frame_index, onehot_to_index)
-from ..dataset import (label_value_problem, list_images, read_labels_raw, read_prompts, read_yaml, write_labels,
+from ..dataset import (image_hw, list_images, read_image_rgb, read_labels_raw, read_prompts, read_yaml, write_labels,
                        write_prompts)
 from ..errors import DatasetError, InputError, InterRealError
+from ..layout import KEYFRAMES_DIR
+from ..masks.labelme import rasterise as rasterise_labelme
+from ..motions import flagged_labels
 from ..report import read_report
+from ..transients import IGNORE, read_transient
+from .label_view import BadLabel, Conflict, finite_number, parse_label_edit, split_labels
+from .pixels import encode_index_png, file_version, mask_versions, png_bytes, png_bytes_rgb, read_index_png
+from .pixels import rasterise as rasterise_shape
 
-KEYFRAMES_DIR = L.KEYFRAMES_DIR
+_read_index_png = read_index_png  # the name the tests use
+
+IGNORE_OBJECT = -1  # `object` of a stroke that paints the ignore class (people, hands: value 254 in the PNG)
 THUMB_WIDTH = 160
 UNDO_DEPTH = 50  # strokes remembered per keyframe (in memory, for this server run)
 BROWSER_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".bmp")
-_EPS = 1e-6
-
-
-class Conflict(Exception):
-    """Another writer changed an item this edit was based on; nothing was written."""
 
 
 class UnknownFrame(LookupError):
@@ -52,89 +55,6 @@ class Outside(Exception):
 
 
 FID_MAX_DIGITS = 9  # frame numbers are small; a longer id is not a frame (and int() of 5000 digits raises)
-
-
-def file_version(path: Path) -> str:
-    """Content hash of a file ('0' when absent): the version a client read."""
-    try:
-        return hashlib.sha1(path.read_bytes()).hexdigest()[:16]
-    except FileNotFoundError:
-        return "0"
-
-
-def _mask_versions(index: np.ndarray | None) -> dict[str, str]:
-    """Per index value (object id + 1, 0 = background): a hash of where that value is on the keyframe."""
-    if index is None:
-        return {}
-    out = {}
-    for v in np.unique(index):
-        bits = np.packbits(index == v)
-        out[str(int(v))] = hashlib.sha1(bits.tobytes()).hexdigest()[:12]
-    return out
-
-
-def _png_bytes(index: np.ndarray) -> bytes:
-    import cv2
-
-    ok, enc = cv2.imencode(".png", np.ascontiguousarray(index.astype(np.uint8)))
-    if not ok:
-        raise OSError("could not encode PNG")
-    return enc.tobytes()
-
-
-def _read_index_png(path: Path) -> np.ndarray | None:
-    import cv2
-
-    if not path.exists():
-        return None
-    try:
-        data = np.fromfile(str(path), dtype=np.uint8)
-    except IsADirectoryError:
-        data = np.zeros(0, np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if img is None or img.ndim not in (2, 3):
-        raise InputError(f"{KEYFRAMES_DIR}/{path.name} is not a readable index PNG; delete it or fix it")
-    return img[..., 0] if img.ndim == 3 else img
-
-
-@dataclass(frozen=True)
-class BadLabel:
-    """An entry of key_frame_value.yaml that is not a state in [0, 1] (object '' = the whole frame entry)."""
-
-    frame: str
-    object: str
-    value: Any
-    problem: str
-
-    def as_json(self) -> dict[str, str]:
-        shown = repr(self.value)
-        return {"frame": self.frame, "object": self.object, "value": shown[:80] + ("…" if len(shown) > 80 else ""),
-                "problem": f"{LABELS_FILE}: {self.frame}{': ' + self.object if self.object else ''}: {self.problem}"}
-
-
-def finite_number(value: Any) -> bool:
-    """A number (not true/false) that is a finite float; False for a 400-digit integer too."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return False
-    try:
-        return math.isfinite(value)
-    except OverflowError:
-        return False
-
-
-def _label_problem(value: Any) -> str:
-    """Why a raw YAML label value is not a usable state, with what to do ('' when it is one)."""
-    try:
-        why = label_value_problem(value)
-    except OverflowError:  # a 400-digit integer
-        why = f"{str(value)[:20]}... is not a finite number"
-    return f"{why}: set the state again (0 = closed ... 1 = open) or clear it" if why else ""
-
-
-def _same(a: float | None, b: float | None) -> bool:
-    if a is None or b is None:
-        return a is None and b is None
-    return abs(float(a) - float(b)) <= _EPS
 
 
 class DatasetStore:
@@ -195,12 +115,10 @@ class DatasetStore:
 
     def image_size(self, fid: str) -> tuple[int, int]:
         """(w, h) from the image header."""
-        from PIL import Image, UnidentifiedImageError
-
         path = self.image_file(fid)
         try:
-            with Image.open(path) as im:
-                return im.size
+            h, w = image_hw(path)
+            return w, h
         except (UnidentifiedImageError, ValueError) as exc:
             raise DatasetError(f"{IMAGES_DIR}/{path.name} is not a readable image ({exc}); replace or remove it") from None
 
@@ -210,11 +128,9 @@ class DatasetStore:
         if path.suffix.lower() in BROWSER_IMAGE_SUFFIXES:
             media = {".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".webp": "image/webp", ".bmp": "image/bmp"}
             return path.read_bytes(), media.get(path.suffix.lower(), "image/png")
-        return _png_bytes_rgb(self._rgb(path)), "image/png"
+        return png_bytes_rgb(self._rgb(path)), "image/png"
 
     def _rgb(self, path: Path) -> np.ndarray:
-        from ..dataset import read_image_rgb
-
         try:
             return read_image_rgb(path)
         except InterRealError:
@@ -226,8 +142,6 @@ class DatasetStore:
 
     def thumbnail(self, fid: str) -> bytes:
         """A THUMB_WIDTH-wide JPEG, cached in memory by file modification time."""
-        import cv2
-
         path = self.image_file(fid)
         key = (str(path), path.stat().st_mtime_ns)
         with self._cache_lock:
@@ -274,7 +188,14 @@ class DatasetStore:
         if not isinstance(onehot, np.ndarray) or onehot.ndim != 3:
             raise DatasetError(f"{MASKS_DIR}/{path.name} has shape {getattr(onehot, 'shape', '?')}, expected "
                                f"(H, W, objects + 1); re-run propagation")
-        data = _png_bytes(onehot_to_index(onehot.astype(bool)))
+        index = onehot_to_index(onehot.astype(bool))
+        try:
+            transient = read_transient(self.ds, self.fid(fid), index.shape)
+        except DatasetError:
+            transient = None  # `interreal validate` names a broken transient mask; the objects still show
+        if transient is not None:
+            index[transient] = IGNORE  # shown as the ignore class
+        data = png_bytes(index)
         with self._cache_lock:
             if len(self._masks) > 500:
                 self._masks.clear()
@@ -312,7 +233,17 @@ class DatasetStore:
                 if not reason:
                     reason = _low_confidence(confidence, fid)
                 out.append({"fid": fid, "reason": reason})
-        return out
+        return self._label_flags() + out
+
+    def _label_flags(self) -> list[dict[str, Any]]:
+        """Labels the motions report names as likely mistakes (the geometry measured another state there)."""
+        try:
+            flags = flagged_labels(self.ds)
+        except (OSError, ValueError):
+            return []
+        return [{"fid": f["fid"], "reason": f"label {f['label']:.2f} of '{f['object']}' disagrees with its measured "
+                                           f"motion ({f['measured']:.2f}): likely a mistake"}
+                for f in flags if isinstance(f["label"], (int, float)) and isinstance(f["measured"], (int, float))]
 
     # ---------------------------------------------------------------------------------------------------- objects
     def _is_inside(self, path: Path) -> bool:
@@ -357,8 +288,9 @@ class DatasetStore:
             if name in self.read_objects().values():
                 raise Conflict(f"an object called {name!r} exists already (perhaps added in another tab); reload")
             oid = L.add_object(self.ds, name, description)
-            if oid + 1 >= UNANNOTATED:
-                raise InputError("at most 254 objects fit in a keyframe index PNG")
+            if oid + 1 >= IGNORE:
+                raise InputError(f"at most {IGNORE - 1} objects fit in a keyframe index PNG (254 = ignore, "
+                                 f"255 = not annotated)")
             return oid
 
     def rename_object(self, old: str, new: str) -> None:
@@ -386,29 +318,7 @@ class DatasetStore:
         `read_labels_raw`): there is nothing to show or keep entry by entry, so the user must fix it by hand.
         """
         self.check_files()
-        good: dict[str, dict[str, float]] = {}
-        bad: dict[tuple[str, str], BadLabel] = {}
-        for key, entry in read_labels_raw(self.ds).items():
-            if not isinstance(entry, dict):
-                bad[(key, "")] = BadLabel(key, "", entry, "expected {object name: value}")
-                continue
-            for name, value in entry.items():
-                problem = _label_problem(value)
-                if problem:
-                    bad[(key, name)] = BadLabel(key, name, value, problem)
-                else:
-                    good.setdefault(key, {})[name] = float(value)
-        return good, bad
-
-    def _write_labels(self, good: dict[str, dict[str, float]], bad: dict[tuple[str, str], "BadLabel"]) -> None:
-        """Write the labels, keeping the bad entries nobody edited exactly as they were (`write_labels` does)."""
-        out: dict[str, Any] = {key: dict(entry) for key, entry in good.items() if entry}
-        for (key, name), b in bad.items():
-            if name:
-                out.setdefault(key, {})[name] = b.value
-            else:
-                out[key] = b.value
-        write_labels(self.ds, out)
+        return split_labels(read_labels_raw(self.ds))
 
     def edit_labels(self, edits: list[dict[str, Any]], version: str | None) -> dict[str, Any]:
         """Apply [{frame, object, value (None = unset), base (the value read; None = none)}] all-or-nothing.
@@ -419,54 +329,20 @@ class DatasetStore:
             raise InputError("no edits given")
         with L.edit_lock(self.ds):
             mapping = self.read_objects()
-            current, bad = self._read_labels()
+            self.check_files()
+            raw = read_labels_raw(self.ds)
+            current, bad = split_labels(raw)
             cur_version = file_version(self.ds / LABELS_FILE)
             parsed, conflicts = [], []
             for e in edits:
-                if not isinstance(e, dict):
-                    raise InputError(f"edit {str(e)[:80]!r} is not an object {{frame, object, value, base}}")
-                name = e.get("object")
-                if not isinstance(name, str):
-                    raise InputError(f"edit {str(e)[:80]!r}: 'object' must be an object name (a string)")
-                if name not in mapping.values():  # the page only offers existing objects: its view is stale
-                    raise Conflict(f"unknown object {name!r} (renamed in another tab?): reload the page")
-                frame = e.get("frame")
-                if isinstance(frame, bool) or not isinstance(frame, (int, str)) or not str(frame).isascii():
-                    raise InputError(f"edit of {name!r}: 'frame' {str(frame)[:40]!r} is not a frame (give its number "
-                                     f"in ASCII digits, e.g. 42, or its name, e.g. frame_00042)")
-                key = L.resolve_frame(self._frames, frame)
-                value = e.get("value")
-                if isinstance(value, (bool, list, dict)):
-                    raise InputError(f"{name} @ {key}: 'value' must be a number in [0, 1] or null, not {value!r:.40}")
-                try:
-                    value = None if value is None else L.normalise_value(value, where=f"{name} @ {key}")
-                except OverflowError:
-                    raise InputError(f"{name} @ {key}: {value} is outside [0, 1]") from None
-                base = e.get("base")
-                if base is not None and not finite_number(base):
-                    raise InputError(f"{name} @ {key}: 'base' {str(base)[:40]!r} must be the number the page read, "
-                                     f"or null when there was no label")
-                base = None if base is None else float(base)
-                now = current.get(key, {}).get(name)  # a bad (non-numeric) entry reads as no label: it can be set
-                if not _same(now, base):
-                    was = "no label" if base is None else f"{base:.3f}"
-                    is_ = "removed" if now is None else f"{now:.3f}"
-                    conflicts.append(f"{name} on {key} was changed elsewhere ({was} -> {is_}) since this page read it")
+                key, name, value, conflict = parse_label_edit(e, mapping, self._frames, current)
                 parsed.append((key, name, value))
+                conflicts += [conflict] if conflict else []
             if conflicts:
                 raise Conflict("; ".join(conflicts) + ". Your edit was not saved: check the new value and set it again.")
-            for key, name, value in parsed:
-                bad.pop((key, name), None)
-                whole = bad.pop((key, ""), None)  # a frame entry that was not a dict: replaced by this edit
-                if whole is not None:
-                    current.pop(key, None)
-                if value is None:
-                    current.get(key, {}).pop(name, None)
-                    if key in current and not current[key]:
-                        del current[key]
-                else:
-                    current.setdefault(key, {})[name] = value
-            self._write_labels(current, bad)
+            merged = L.merge_labels(raw, parsed)  # bad entries nobody edited are kept exactly as they were
+            write_labels(self.ds, merged)
+            current, bad = split_labels(merged)
             return {"labels": current, "version": file_version(self.ds / LABELS_FILE),
                     "bad_labels": [b.as_json() for b in bad.values()],
                     "merged": version is not None and version != cur_version}
@@ -503,50 +379,34 @@ class DatasetStore:
     def keyframe(self, fid: str) -> tuple[np.ndarray | None, dict[str, str]]:
         """The keyframe's index map (PNG, else rasterised LabelMe JSON, else None) and its per-object versions."""
         with L.edit_lock(self.ds):
-            index = _read_index_png(self.keyframe_path(fid))
+            index = read_index_png(self.keyframe_path(fid))
             if index is None and self.labelme_path(fid).exists():
                 index = self._labelme_index(fid)
-            return index, _mask_versions(index)
+            return index, mask_versions(index)
 
     def _labelme_index(self, fid: str) -> np.ndarray | None:
-        import json
-
-        path = self.labelme_path(fid)
+        """The LabelMe keyframe rasterised as `interreal masks` reads it (GrabCut for rectangles), shapes it would
+        refuse left out; None when the file is not LabelMe JSON."""
+        objects = self.read_objects()
         try:
-            doc = json.loads(path.read_text())
-        except PermissionError:
-            raise
-        except (OSError, ValueError, RecursionError):
+            return rasterise_labelme(self.labelme_path(fid), self.image_size(fid), [objects[i] for i in sorted(objects)],
+                                     lambda: self._rgb(self.image_file(fid)), strict=False)
+        except InputError:
             return None
-        w, h = self.image_size(fid)
-        ids = {name: oid for oid, name in self.read_objects().items()}
-        index = np.zeros((h, w), dtype=np.uint8)
-        shapes = doc.get("shapes") if isinstance(doc, dict) else None
-        for shape in shapes if isinstance(shapes, list) else []:
-            if not isinstance(shape, dict) or not isinstance(shape.get("label"), str) or shape["label"] not in ids:
-                continue
-            shape_type = shape.get("shape_type", "polygon")
-            kind = {"polygon": "polygon", "rectangle": "box"}.get(shape_type) if isinstance(shape_type, str) else None
-            try:
-                region = _rasterise({"shape": kind, "points": shape.get("points")}, w, h) if kind else None
-            except InputError:
-                continue
-            if region is not None:
-                index[region] = ids[shape["label"]] + 1
-        return index
 
     def edit_keyframe(self, fid: str, op: dict[str, Any]) -> tuple[np.ndarray, dict[str, str]]:
         """Paint or erase a polygon / box for one object on a keyframe, refusing if an affected object changed.
 
         op = {object: id, name, shape: polygon|box, points: [[x, y], ...] in image pixels, mode: paint|erase,
-        versions: the per-object versions read with the keyframe}.
+        versions: the per-object versions read with the keyframe}. object -1 (`IGNORE_OBJECT`) paints the ignore
+        class (a person, a hand: value 254), which `interreal masks` propagates into the transient layer.
         """
         fid = self.fid(fid)
         if self.labelme_path(fid).exists():
             raise InputError(f"frame {fid} is annotated in keyframes/{fid}.json (LabelMe): edit it in LabelMe, "
                              f"or delete that file to draw this keyframe here")
         w, h = self.image_size(fid)
-        region = _rasterise(op, w, h)
+        region = rasterise_shape(op, w, h)
         mode = op.get("mode", "paint")
         if mode not in ("paint", "erase"):
             raise InputError(f"mode {str(mode)[:40]!r}: use paint or erase")
@@ -558,23 +418,23 @@ class DatasetStore:
             raise InputError("versions must be the {value: hash} object read with the keyframe")
         with L.edit_lock(self.ds):
             mapping = self.read_objects()
-            if oid not in mapping:
+            if oid != IGNORE_OBJECT and oid not in mapping:
                 raise Conflict(f"object id {oid} does not exist (objects changed in another tab?); reload")
-            if op.get("name") is not None and mapping[oid] != op.get("name"):
+            if oid != IGNORE_OBJECT and op.get("name") is not None and mapping[oid] != op.get("name"):
                 raise Conflict(f"object {oid} is now called {mapping[oid]!r}, not {op.get('name')!r}; reload")
             path = self.keyframe_path(fid)
-            index = _read_index_png(path)
+            index = read_index_png(path)
             if index is None:
                 index = np.zeros((h, w), dtype=np.uint8)  # a new keyframe: everything not drawn is background
             if index.shape != (h, w):
                 raise InputError(f"{path} is {index.shape[1]}x{index.shape[0]} but the frame is {w}x{h}")
-            current = _mask_versions(index)
-            k = oid + 1
+            current = mask_versions(index)
+            k = IGNORE if oid == IGNORE_OBJECT else oid + 1
             if mode == "paint":
                 affected = {k} | {int(v) for v in np.unique(index[region])} - {0, k, UNANNOTATED}
             else:
                 affected = {k}
-            changed = [mapping.get(v - 1, f"object {v - 1}") for v in sorted(affected) if current.get(str(v)) != seen.get(str(v))]
+            changed = [mapping.get(v - 1, "ignore" if v == IGNORE else f"object {v - 1}") for v in sorted(affected) if current.get(str(v)) != seen.get(str(v))]
             if changed:
                 raise Conflict(f"the mask of {', '.join(map(repr, changed))} on frame {fid} was changed elsewhere since "
                                f"this page read it; your stroke was not saved: look at the new mask and draw it again")
@@ -584,8 +444,8 @@ class DatasetStore:
             else:
                 index[region & (index == k)] = 0
             self._ensure_keyframe_mapping(mapping)
-            atomic.write_bytes(path, _png_bytes(index))
-            after = _mask_versions(index)
+            atomic.write_bytes(path, png_bytes(index))
+            after = mask_versions(index)
             stack = self._undo.setdefault(fid, [])
             stack.append((before, after))
             del stack[:-UNDO_DEPTH]
@@ -599,7 +459,7 @@ class DatasetStore:
             if not stack:
                 raise InputError(f"nothing to undo on frame {fid}")
             path = self.keyframe_path(fid)
-            current = _mask_versions(_read_index_png(path))
+            current = mask_versions(read_index_png(path))
             before, after = stack[-1]
             if current != after or (versions or {}) != after:
                 raise Conflict(f"keyframe {fid} was changed elsewhere after your last stroke; it cannot be undone "
@@ -609,16 +469,16 @@ class DatasetStore:
                 path.unlink()
                 return None, {}
             atomic.write_bytes(path, before)
-            index = _read_index_png(path)
-            return index, _mask_versions(index)
+            index = read_index_png(path)
+            return index, mask_versions(index)
 
     def delete_keyframe(self, fid: str, versions: dict[str, str]) -> None:
         with L.edit_lock(self.ds):
             path = self.keyframe_path(fid)
-            index = _read_index_png(path)
+            index = read_index_png(path)
             if index is None:
                 return
-            if _mask_versions(index) != (versions or {}):
+            if mask_versions(index) != (versions or {}):
                 raise Conflict(f"keyframe {fid} was changed elsewhere since this page read it; reload before deleting it")
             path.unlink()
 
@@ -647,51 +507,4 @@ def _low_confidence(confidence: dict[str, Any], fid: str) -> str:
     return f"confidence {scores[name]:.2f} ({name})"
 
 
-def _png_bytes_rgb(rgb: np.ndarray) -> bytes:
-    import cv2
-
-    ok, enc = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
-    return enc.tobytes()
-
-
-def _rasterise(op: dict[str, Any], w: int, h: int) -> np.ndarray:
-    """Bool (h, w) region of a polygon or box given in image pixel coordinates."""
-    shape = op.get("shape", "polygon")
-    pts = op.get("points")
-    try:
-        arr = np.asarray(pts, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError("points must be a list of [x, y] pairs") from None
-    if arr.ndim != 2 or arr.shape[1] != 2 or not np.all(np.isfinite(arr)) or len(arr) > 10000:
-        raise InputError("points must be a list of finite [x, y] pairs (at most 10000)")
-    if len(arr) and np.abs(arr).max() > 1e6:
-        raise InputError("points must be image pixel coordinates (within a million pixels of the frame)")
-    canvas = np.zeros((h, w), dtype=np.uint8)
-    if shape == "box":
-        if len(arr) != 2:
-            raise InputError("a box needs two corner points")
-        (x0, y0), (x1, y1) = arr.min(axis=0), arr.max(axis=0)
-        x0, y0 = max(0, math.ceil(x0 - 0.5)), max(0, math.ceil(y0 - 0.5))
-        x1, y1 = min(w, math.ceil(x1 - 0.5)), min(h, math.ceil(y1 - 0.5))
-        canvas[y0:y1, x0:x1] = 1
-    elif shape == "polygon":
-        if len(arr) < 3:
-            raise InputError("a polygon needs at least three points")
-        from skimage.draw import polygon as fill_polygon
-
-        # a pixel belongs to the shape when its centre (x + 0.5, y + 0.5) does, as for the box
-        rr, cc = fill_polygon(arr[:, 1] - 0.5, arr[:, 0] - 0.5, shape=(h, w))
-        canvas[rr, cc] = 1
-    else:
-        raise InputError(f"shape {shape!r}: use polygon or box")
-    region = canvas.astype(bool)
-    if not region.any():
-        raise InputError("the shape covers no pixel of the frame")
-    return region
-
-
-def encode_index_png(index: np.ndarray) -> bytes:
-    return _png_bytes(index)
-
-
-__all__ = ["DatasetStore", "Conflict", "UnknownFrame", "file_version", "encode_index_png"]
+__all__ = ["DatasetStore", "Conflict", "UnknownFrame", "Outside", "file_version", "encode_index_png", "finite_number"]

@@ -11,48 +11,55 @@ import argparse
 from pathlib import Path
 
 from ..report import warning_lines
-from .stage import PREVIEW_KINDS, propagate
+from ..options import add_flags, values_from_args
+from .config import MasksConfig
+from .stage import propagate
 
-__all__ = ["propagate", "add_arguments", "main"]
+__all__ = ["MasksConfig", "propagate", "add_arguments", "main", "masks_options"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", type=Path, help="dataset folder with images/ (from `interreal frames`)")
     p.add_argument("--keyframes", type=Path, required=True,
                    help="folder of keyframe annotations: <frame id>.png index masks or <frame id>.json LabelMe")
-    p.add_argument("--suggest", type=int, default=5, metavar="N",
-                   help="print the N frames where one more keyframe would help most (default 5)")
-    p.add_argument("--work-size", type=int, default=-1, metavar="PX",
-                   help="long side of the flow/propagation resolution (0 = full size; default auto: 400 when "
-                        "every keyframe gap is at most 12 frames, else 480)")
-    p.add_argument("--flow", choices=("dis", "rlof", "farneback"), default="dis", help="optical flow (default dis)")
-    p.add_argument("--preset", choices=("ultrafast", "fast", "medium"), default="fast", help="DIS preset")
-    p.add_argument("--appearance", type=float, default=0.25, help="weight of the colour model (0 = off)")
-    p.add_argument("--rigid", type=float, default=1.0, help="weight of the per-object homography motion (0 = off)")
-    p.add_argument("--no-fusion", action="store_true", help="forward chain only (no backward fusion)")
-    p.add_argument("--no-refine", action="store_true", help="no guided-filter boundary refinement")
-    p.add_argument("--preview", choices=PREVIEW_KINDS, default="both",
-                   help="DS/previews/masks_sheet.png and/or masks_overlay.mp4 (default both)")
+    add_masks_options(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.epilog = """examples:
   interreal frames video.mp4 out/ds
   interreal masks out/ds --keyframes annotations/keyframes
   interreal masks out/ds --keyframes kf/ --suggest 3 --preview sheet
   interreal masks out/ds --keyframes kf/ --work-size 0 --preset medium   # slower, sharper
-keyframes: DIR/00042.png (0 = background, k = object k-1, 255 = not annotated) or DIR/00042.json (LabelMe
-polygons / rectangles); DIR/mapping.yaml names the objects when the dataset has no mapping.yaml.
-outputs: DS/masks/<fid>.npy, DS/sfm_masks/<image>.png, DS/previews/, DS/reports/masks.json"""
+keyframes: DIR/00042.png (0 = background, k = object k-1, 254 = ignore: a person / hand, 255 = not annotated) or
+DIR/00042.json (LabelMe polygons / rectangles; label ignore, person, hand or arm = the ignore class);
+DIR/mapping.yaml names the objects when the dataset has no mapping.yaml. The ignore class is propagated like an
+object into DS/transients/ (left out of poses, motions and training).
+outputs: DS/masks/<fid>.npy, DS/sfm_masks/<image>.png, DS/transients/<fid>.png, DS/previews/, DS/reports/masks.json"""
+
+
+def add_masks_options(p) -> None:
+    """The masks flags (shared with `interreal process`): one per `option` field of `MasksConfig`."""
+    add_flags(p, MasksConfig)
+
+
+def masks_options(args: argparse.Namespace) -> dict:
+    """`propagate` options from the parsed flags (every flagged field, its default when not given)."""
+    return values_from_args(MasksConfig, args)
 
 
 def main(args: argparse.Namespace) -> int:
-    fig = propagate(args.dataset, args.keyframes, work_long_side=args.work_size, flow=args.flow, preset=args.preset,
-                    appearance=args.appearance, rigid=args.rigid, fusion=not args.no_fusion,
-                    refine=not args.no_refine, suggest=args.suggest, preview=args.preview, progress=not args.quiet)
+    opts = masks_options(args)
+    fig = propagate(args.dataset, args.keyframes, progress=not args.quiet, **opts)
     print(f"masks: {fig['frames']} frames, {len(fig['objects'])} objects, {fig['fps']:.1f} frames/s")
+    tr = fig.get("transients") or {}
+    if tr.get("frames"):
+        print(f"  transients (ignore class): {tr['frames']} frames, {100 * tr['mean_share']:.1f} % of the pixels "
+              f"on average (at most {100 * tr['max_share']:.0f} %) -> {args.dataset / 'transients'}")
+    for name, frames in (tr.get("occluded") or {}).items():
+        print(f"  {name}: hidden behind the person / hand at frames {frames} (occluded, not lost)")
     for name, c in fig["confidence_mean"].items():
         print(f"  {name}: predicted J {c:.2f} (lowest frame {fig['confidence_min'][name]:.2f})")
     for line in warning_lines(args.dataset, ["masks"]):
         print(line)
-    if args.suggest > 0:
+    if opts["suggest"] > 0:
         print("annotate next: " + (", ".join(fig["suggested_frames"]) or "(nothing: every frame is a keyframe)"))
     return 0

@@ -1,16 +1,18 @@
 """Keyframe annotations (`--keyframes DIR`): index-mask PNGs or LabelMe JSON, checked before anything is written.
 
-- `DIR/<fid>.png`: 8-bit index map, 0 = background, k = object k-1, 255 = not annotated. An object with no
-  pixel on an annotated keyframe is out of view there (that is how leaving / re-entering is said).
+- `DIR/<fid>.png`: 8-bit index map, 0 = background, k = object k-1, 254 = ignore (a person, hand or arm: the
+  transient layer, `interreal.transients`), 255 = not annotated. An object with no pixel on an annotated keyframe
+  is out of view there (that is how leaving / re-entering is said); an object drawn on no keyframe is an error.
 - `DIR/<fid>.json`: LabelMe; `shapes[].label` = object name, `shape_type` polygon or rectangle. A rectangle
   means "the object is inside this box" and is cut out with GrabCut. Pixels outside every shape are background.
+  A shape labelled `ignore` / `person` / `hand` / `arm` / `transient` paints the ignore class (it wins over
+  objects: a hand is in front of what it touches; a rectangle of it is taken whole).
 - `DIR/mapping.yaml` names the objects (PNG ids refer to it); the dataset's mapping.yaml wins when it exists.
 Every problem raises InputError naming the file and what to do.
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,14 +21,23 @@ import numpy as np
 import yaml
 
 from ..conventions import MAPPING_FILE, UNANNOTATED, frame_id
+from ..dataset import decode_image
 from ..errors import InputError
+from ..transients import IGNORE, whole_frame
+from . import labelme
+from .labelme import same_aspect
 
 
 @dataclass
 class Keyframes:
-    masks: dict[str, np.ndarray]   # fid -> (H, W) uint8 index map in the dataset's object ids (255 = unknown)
+    masks: dict[str, np.ndarray]   # fid -> (H, W) uint8 index map in the dataset's object ids (254 ignore, 255 unknown)
     names: list[str]               # object names, id order
     sources: dict[str, str]        # fid -> file name
+
+    @property
+    def has_ignore(self) -> bool:
+        """Whether any keyframe paints the ignore (transient) class."""
+        return any((m == IGNORE).any() for m in self.masks.values())
 
 
 def read_mapping_file(path: Path) -> dict[int, str]:
@@ -77,14 +88,20 @@ def load_keyframes(folder: str | Path, frame_ids: list[str], size: tuple[int, in
         if any(p.suffix.lower() == ".png" for p in by_fid.values()):
             raise InputError(f"no object names: the dataset has no mapping.yaml and {folder / MAPPING_FILE} is missing; "
                              "write {0: 'first object', 1: 'second object'} there")
-        mapping = _mapping_from_labelme(by_fid)
+        mapping = dict(enumerate(labelme.object_labels([p for _, p in sorted(by_fid.items())])))
     names = [mapping[i] for i in sorted(mapping)]
+    if len(names) >= IGNORE:
+        raise InputError(f"{len(names)} objects: at most {IGNORE - 1} fit in a keyframe index map (254 = ignore, "
+                         f"255 = not annotated); split the capture's objects over two datasets")
     masks: dict[str, np.ndarray] = {}
     for fid, p in sorted(by_fid.items()):
         if p.suffix.lower() == ".png":
             masks[fid] = _read_png(p, size, names, dir_map)
         else:
-            masks[fid] = _read_labelme(p, size, names, (lambda f=fid: image_of(f)) if image_of else None)
+            masks[fid] = labelme.rasterise(p, size, names, (lambda f=fid: image_of(f)) if image_of else None)
+        if whole_frame(masks[fid] == IGNORE):
+            raise InputError(f"{p}: the ignore class (person / hand) covers the whole of frame {fid}, leaving "
+                             f"nothing static to reconstruct or train on; paint only the person, or delete the file")
     for k, name in enumerate(names):
         if not any((m == k + 1).any() for m in masks.values()):
             raise InputError(f"object '{name}' (id {k}) is drawn on no keyframe: annotate it on at least one frame, "
@@ -92,24 +109,8 @@ def load_keyframes(folder: str | Path, frame_ids: list[str], size: tuple[int, in
     return Keyframes(masks, names, {fid: p.name for fid, p in by_fid.items()})
 
 
-def _mapping_from_labelme(by_fid: dict[str, Path]) -> dict[int, str]:
-    names: list[str] = []
-    for _, p in sorted(by_fid.items()):
-        for shape in _labelme(p).get("shapes", []):
-            label = str(shape.get("label", ""))
-            if label and label not in names:
-                names.append(label)
-    return dict(enumerate(names))
-
-
-def same_aspect(a: tuple[int, int], b: tuple[int, int], tol: float = 0.01) -> bool:
-    """Whether two (w, h) sizes are the same picture at another resolution (aspect ratios within `tol`)."""
-    return abs((a[0] / a[1]) / (b[0] / b[1]) - 1.0) <= tol
-
-
 def _read_png(path: Path, size: tuple[int, int], names: list[str], dir_map: dict[int, str]) -> np.ndarray:
-    data = np.fromfile(str(path), dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    img = decode_image(path)
     if img is None:
         raise InputError(f"{path}: cannot decode the PNG (corrupt or not an image); re-export the mask")
     if img.ndim == 3:
@@ -126,11 +127,12 @@ def _read_png(path: Path, size: tuple[int, int], names: list[str], dir_map: dict
                              f"(another aspect ratio); draw the mask on the extracted frame DS/images/")
         # drawn on the source video, frames extracted smaller (or larger): same picture, other resolution
         img = cv2.resize(img, size, interpolation=cv2.INTER_NEAREST_EXACT)
-    values = set(np.unique(img).tolist()) - {0, UNANNOTATED}
+    values = set(np.unique(img).tolist()) - {0, IGNORE, UNANNOTATED}
     bad = sorted(v for v in values if v > len(names))
     if bad:
         raise InputError(f"{path}: values {bad} name no object (objects are 1..{len(names)}: "
-                         f"{', '.join(f'{i + 1}={n}' for i, n in enumerate(names))}; 255 = not annotated)")
+                         f"{', '.join(f'{i + 1}={n}' for i, n in enumerate(names))}; 254 = ignore (person, hand), "
+                         f"255 = not annotated)")
     if dir_map and dir_map != dict(enumerate(names)):
         unknown = [n for n in dir_map.values() if n not in names]
         if unknown:
@@ -144,103 +146,3 @@ def _read_png(path: Path, size: tuple[int, int], names: list[str], dir_map: dict
         raise InputError(f"{path}: empty mask (every pixel is 255 = not annotated); draw the objects "
                          f"(0 = background), or delete the file")
     return img.copy()
-
-
-def _labelme(path: Path) -> dict:
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: not valid LabelMe JSON ({exc}); re-save it from LabelMe") from exc
-    if not isinstance(doc, dict) or not isinstance(doc.get("shapes"), list):
-        raise InputError(f"{path}: LabelMe JSON needs a 'shapes' list")
-    return doc
-
-
-def _read_labelme(path: Path, size: tuple[int, int], names: list[str], image) -> np.ndarray:
-    doc = _labelme(path)
-    w, h = size
-    dw, dh = doc.get("imageWidth"), doc.get("imageHeight")
-    scale = (1.0, 1.0)
-    if dw is not None and dh is not None and (int(dw), int(dh)) != (w, h):
-        if not same_aspect((int(dw), int(dh)), (w, h)):
-            raise InputError(f"{path}: drawn on a {dw}x{dh} image but the frames are {w}x{h} (another aspect "
-                             f"ratio); annotate DS/images/")
-        scale = (w / int(dw), h / int(dh))  # drawn on the source video: scale the shapes to the frames
-    polys = np.zeros((len(names), h, w), bool)
-    boxes: list[tuple[int, tuple[int, int, int, int]]] = []
-    for i, shape in enumerate(doc["shapes"]):
-        label = str(shape.get("label", ""))
-        if label not in names:
-            raise InputError(f"{path}: shape {i} has label '{label}', not an object name ({names}); fix the label "
-                             f"or add the object to mapping.yaml")
-        k = names.index(label)
-        kind = shape.get("shape_type", "polygon") or "polygon"
-        try:
-            pts = np.asarray(shape["points"], dtype=np.float64).reshape(-1, 2) * np.asarray(scale)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(f"{path}: shape {i} ('{label}') has no usable points ({exc})") from exc
-        if not np.all(np.isfinite(pts)):
-            raise InputError(f"{path}: shape {i} ('{label}') has non-finite points")
-        if kind == "polygon":
-            m = np.zeros((h, w), np.uint8)
-            cv2.fillPoly(m, [np.round(pts).astype(np.int32)], 1)
-            if not m.any() or len(pts) < 3:
-                raise InputError(f"{path}: polygon {i} ('{label}') is empty (fewer than 3 points or no area)")
-            polys[k] |= m > 0
-        elif kind == "rectangle":
-            if len(pts) != 2:
-                raise InputError(f"{path}: rectangle {i} ('{label}') needs 2 corner points")
-            x0, y0 = np.clip(np.floor(pts.min(0)), 0, [w - 1, h - 1]).astype(int)
-            x1, y1 = np.clip(np.ceil(pts.max(0)), 0, [w, h]).astype(int)
-            if x1 - x0 < 3 or y1 - y0 < 3:
-                raise InputError(f"{path}: rectangle {i} ('{label}') is empty (under 3 px on a side)")
-            boxes.append((k, (int(x0), int(y0), int(x1), int(y1))))
-        else:
-            raise InputError(f"{path}: shape {i} ('{label}') is a {kind}; use polygons or rectangles")
-    _check_overlap(path, polys, names)
-    index = np.zeros((h, w), np.uint8)
-    for k in range(len(names)):
-        index[polys[k]] = k + 1
-    for k, box in sorted(boxes, key=lambda kb: -(kb[1][2] - kb[1][0]) * (kb[1][3] - kb[1][1])):
-        if image is None:
-            raise InputError(f"{path}: rectangles need the frame image to be refined")
-        drawn = polys.any(0)
-        inside = grabcut_box(image(), box, taken=drawn)
-        index[inside & ~drawn] = k + 1  # polygons win over boxes; boxes go largest first, so smaller ones win
-    if not index.any():
-        raise InputError(f"{path}: empty annotation (no shape covers any pixel); draw the objects, or delete the file")
-    return index
-
-
-def _check_overlap(path: Path, polys: np.ndarray, names: list[str]) -> None:
-    for a in range(len(names)):
-        for b in range(a + 1, len(names)):
-            both = polys[a] & polys[b]
-            if both.any():
-                ys, xs = np.nonzero(both)
-                raise InputError(
-                    f"{path}: polygons of '{names[a]}' and '{names[b]}' overlap on {len(xs)} pixels "
-                    f"(x {xs.min()}..{xs.max()}, y {ys.min()}..{ys.max()}); objects are exclusive: "
-                    f"cut one polygon back so each pixel belongs to one object")
-
-
-def grabcut_box(image: np.ndarray, box: tuple[int, int, int, int], taken: np.ndarray | None = None,
-                iterations: int = 4) -> np.ndarray:
-    """Object mask inside `box` (x0, y0, x1, y1) by GrabCut; pixels in `taken` are forced background."""
-    h, w = image.shape[:2]
-    x0, y0, x1, y1 = box
-    mask = np.full((h, w), cv2.GC_BGD, np.uint8)
-    mask[y0:y1, x0:x1] = cv2.GC_PR_FGD
-    if taken is not None:
-        mask[taken] = cv2.GC_BGD
-    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
-    cv2.setRNGSeed(0)
-    bgr = np.ascontiguousarray(image[..., ::-1])
-    try:
-        cv2.grabCut(bgr, mask, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
-    except cv2.error:
-        return mask == cv2.GC_PR_FGD  # too little background to model colour: keep the box
-    out = (mask == cv2.GC_FGD) | (mask == cv2.GC_PR_FGD)
-    if not out.any():
-        out = mask == cv2.GC_PR_FGD
-    return out

@@ -13,25 +13,28 @@ PALETTE = np.array([(230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200),
                     (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 212)], np.uint8)
 
 
-def overlay(image: np.ndarray, labels: np.ndarray, alpha: float = 0.5) -> np.ndarray:
-    """RGB image with each object tinted and outlined in its palette colour."""
+IGNORE_GREY = np.array((158, 158, 158), np.uint8)  # the ignore class (people, hands), as the annotate app draws it
+
+
+def overlay(image: np.ndarray, labels: np.ndarray, alpha: float = 0.5, ignore: int | None = None) -> np.ndarray:
+    """RGB image with each object tinted and outlined in its palette colour (label `ignore` in grey)."""
     out = image.copy()
     for k in range(1, int(labels.max()) + 1):
         m = labels == k
         if not m.any():
             continue
-        c = PALETTE[(k - 1) % len(PALETTE)].astype(np.float32)
-        out[m] = (out[m] * (1 - alpha) + c * alpha).astype(np.uint8)
+        colour = IGNORE_GREY if k == ignore else PALETTE[(k - 1) % len(PALETTE)]
+        out[m] = (out[m] * (1 - alpha) + colour.astype(np.float32) * alpha).astype(np.uint8)
         edge = cv2.morphologyEx(m.astype(np.uint8), cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
-        out[edge] = PALETTE[(k - 1) % len(PALETTE)]
+        out[edge] = colour
     return out
 
 
-def thumb(image: np.ndarray, labels: np.ndarray, width: int, caption: str) -> np.ndarray:
+def thumb(image: np.ndarray, labels: np.ndarray, width: int, caption: str, ignore: int | None = None) -> np.ndarray:
     h = max(8, round(image.shape[0] * width / image.shape[1]))
     small = cv2.resize(image, (width, h), interpolation=cv2.INTER_AREA)
     lab = cv2.resize(labels, (width, h), interpolation=cv2.INTER_NEAREST)
-    t = overlay(small, lab)
+    t = overlay(small, lab, ignore=ignore)
     cv2.putText(t, caption, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 3, cv2.LINE_AA)
     cv2.putText(t, caption, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
     return t

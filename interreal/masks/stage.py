@@ -15,20 +15,20 @@ from .. import atomic, provenance
 from ..conventions import IMAGES_DIR, FRAME_PREFIX, frame_id, frame_index, index_to_onehot, mask_file
 from ..dataset import list_images, read_image_rgb, read_mapping, write_mapping, write_mask
 from ..errors import InputError
+from ..layout import PREVIEWS_DIR, SFM_MASKS_DIR
 from ..report import StageReport, files_fingerprint, finished_with, fingerprint, tree_fingerprint
-from .appearance import AppearanceConfig
+from ..options import config_from
+from .config import PREVIEW_KINDS, MasksConfig
 from .confidence import keyframe_reach, next_keyframes, reach_suggestion
 from . import health as H
-from .flow import FlowConfig
 from .keyframes import load_keyframes
 from ..video import VideoWriter
 from .preview import contact_sheet, second_line, thumb
-from .track import Propagator, TrackConfig, _argmax_labels, auto_work_long_side
-
-SFM_MASKS_DIR = "sfm_masks"
-PREVIEWS_DIR = "previews"
-PREVIEW_KINDS = ("sheet", "video", "both", "none")
-
+from .soft import argmax_labels
+from .track import Propagator, TrackConfig
+from .workframes import auto_work_long_side
+from ..transients import (IGNORE, clear_transients, read_transient, split_labels, track_labels, transient_file,
+                          write_transient)
 
 # Farthest a propagated frame may lie from its nearest keyframe, in image widths of view motion. Measured (mean
 # IoU of the worst object): 0.05-0.09 -> 0.89-0.94 (DAVIS every 10th frame, simulated captures at normal speed);
@@ -36,13 +36,9 @@ PREVIEW_KINDS = ("sheet", "video", "both", "none")
 MAX_REACH = 0.10
 
 
-def make_config(work_long_side: int = -1, flow: str = "dis", preset: str = "fast", appearance: float = 0.25,
-                rigid: float = 1.0, fusion: bool = True, refine: bool = True) -> TrackConfig:
-    """A TrackConfig from the user-facing options."""
-    return TrackConfig(flow=FlowConfig(method=flow, preset=preset), appearance=AppearanceConfig(weight=appearance),
-                       work_long_side=work_long_side, rigid=rigid, fusion=fusion,
-                       refine_radius=TrackConfig.refine_radius if refine else 0,
-                       out_radius=TrackConfig.out_radius if refine else 0)
+def make_config(**opts: Any) -> TrackConfig:
+    """A TrackConfig from the user-facing options (`MasksConfig` fields; None = the default)."""
+    return config_from(MasksConfig, opts, "masks").track_config()
 
 
 def dataset_frames(ds: Path) -> list[Path]:
@@ -52,13 +48,13 @@ def dataset_frames(ds: Path) -> list[Path]:
     return sorted(images, key=frame_index)
 
 
-def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int = -1, flow: str = "dis",
-              preset: str = "fast", appearance: float = 0.25, rigid: float = 1.0, fusion: bool = True,
-              refine: bool = True, suggest: int = 5, preview: str = "both", sfm_dilate: int | None = None,
-              progress: bool = True, config: TrackConfig | None = None) -> dict[str, Any]:
+def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = True, config: TrackConfig | None = None,
+              **opts: Any) -> dict[str, Any]:
     """Propagate keyframe masks to every frame of DS; returns the report's figures.
 
-    `config` (a TrackConfig) overrides the individual options (benchmarks use it for the baseline).
+    `opts`: the `MasksConfig` fields (work_long_side, flow, preset, appearance, rigid, fusion, refine, suggest,
+    preview, sfm_dilate; None = the default). `config` (a TrackConfig) overrides the propagation ones (benchmarks
+    use it for the baseline).
 
     Everything the user gave is checked first (InputError, nothing written); then the report is opened
     ("running"), so a crash half-way leaves it "failed" and `interreal validate` refuses the dataset. A finished
@@ -66,9 +62,11 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
     features too).
     """
     ds = Path(ds)
+    opt = config_from(MasksConfig, opts, "masks")
+    suggest, preview, sfm_dilate = opt.suggest, opt.preview, opt.sfm_dilate
     if preview not in PREVIEW_KINDS:
         raise InputError(f"--preview {preview!r}: choose one of {PREVIEW_KINDS}")
-    cfg = config or make_config(work_long_side, flow, preset, appearance, rigid, fusion, refine)
+    cfg = config or opt.track_config()
     images = dataset_frames(ds)
     fids = [frame_id(p) for p in images]
     # the mapping file is left out of the key: the first run writes it, which would make every second run look changed
@@ -77,7 +75,8 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
                                                     asdict(cfg), suggest, preview, sfm_dilate)
     done = finished_with(ds, "masks", key) if key is not None else None
     if done is not None and all(mask_file(ds, f).exists() for f in fids) \
-            and all((ds / SFM_MASKS_DIR / f"{p.name}.png").exists() for p in images):
+            and all((ds / SFM_MASKS_DIR / f"{p.name}.png").exists() for p in images) \
+            and all(transient_file(ds, f).exists() for f in (done["figures"].get("transients") or {}).get("share", {})):
         if progress:
             print(f"masks: {len(fids)} frames' masks are up to date (same frames, keyframes and settings)")
         return done["figures"]
@@ -103,7 +102,9 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
     t_kf = time.perf_counter() - t0
     _refuse_duplicate_names(Path(keyframes_dir), list(kf.names))
     n_obj = len(kf.names)
-    anchors = {pos_of[f]: m for f, m in kf.masks.items()}
+    # the painted ignore class (people, hands) is tracked as one more object, then written to DS/transients/
+    n_track = n_obj + int(kf.has_ignore)
+    anchors = {pos_of[f]: track_labels(m, n_obj) for f, m in kf.masks.items()}
     if cfg.work_long_side < 0:
         cfg = replace(cfg, work_long_side=auto_work_long_side(anchors, len(fids)))
     inputs = {"keyframes_dir": str(keyframes_dir), "keyframes": kf.sources, "frames": len(fids),
@@ -114,11 +115,14 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
         if not ds_mapping:
             write_mapping(ds, dict(enumerate(kf.names)))
         dil = sfm_dilate if sfm_dilate is not None else max(2, round(0.006 * float(np.hypot(*size))))
-        prop = Propagator(load, len(fids), size, n_obj, cfg)
-        ref = {p: np.array([(m == k + 1).mean() for k in range(n_obj)]) for p, m in anchors.items()}
+        prop = Propagator(load, len(fids), size, n_track, cfg)
+        ref = {p: np.array([(m == k + 1).mean() for k in range(n_track)]) for p, m in anchors.items()}
         key_refs = {p: H.key_reference(cv2.resize(load(p), prop.wsize, interpolation=cv2.INTER_AREA),
-                                       _work_labels(m, prop.wsize), n_obj) for p, m in sorted(anchors.items())}
-        cues = _Cues(len(fids), n_obj)
+                                       _work_labels(m, prop.wsize), n_track) for p, m in sorted(anchors.items())}
+        cues = _Cues(len(fids), n_track)
+        clear_transients(ds)  # this run's ignore class (or none) replaces any earlier transient layer
+        transient_share = np.zeros(len(fids))
+        grey = n_obj + 1 if n_track > n_obj else None  # previews draw the ignore class grey
         sheet_pos = set(np.linspace(0, len(fids) - 1, min(len(fids), 24)).round().astype(int).tolist())
         tiles: dict[int, np.ndarray] = {}
         vid_w = min(480, size[0])
@@ -129,17 +133,21 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
             bar = tqdm(total=len(fids), desc="masks", unit="frame", disable=not progress)
             for res in prop.run(anchors):
                 tw, cw = time.perf_counter(), time.process_time()
-                write_mask(ds, fids[res.pos], index_to_onehot(res.labels, n_obj))
-                _write_sfm_mask(ds, images[res.pos].name, res.labels, dil)
+                labels, transient = split_labels(res.labels, n_obj)
+                write_mask(ds, fids[res.pos], index_to_onehot(labels, n_obj))
+                if transient.any():
+                    write_transient(ds, fids[res.pos], transient)
+                    transient_share[res.pos] = transient.mean()
+                _write_sfm_mask(ds, images[res.pos].name, res.labels, dil)  # transients left out like objects
                 cues.add(res, prop, key_refs)
                 if preview != "none":
                     image = prop.cache.peek(res.pos)
                     image = load(res.pos) if image is None else image
                     cap = f"{fids[res.pos]}{' key' if res.keyframe else ''}"
                     if preview in ("sheet", "both") and res.pos in sheet_pos:
-                        tiles[res.pos] = thumb(image, res.labels, 240, cap)
+                        tiles[res.pos] = thumb(image, res.labels, 240, cap, ignore=grey)
                     if preview in ("video", "both"):
-                        video[res.pos] = thumb(image, res.labels, vid_w, cap)
+                        video[res.pos] = thumb(image, res.labels, vid_w, cap, ignore=grey)
                 t_write += time.perf_counter() - tw
                 c_write += time.process_time() - cw
                 bar.update(1)
@@ -160,12 +168,13 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
                                  cues.centroid, H.reach_per_frame(motion, keys, len(fids)), cues.thin)
         expected = _expected(ref, len(fids))
         hl = H.assess(feats, cues.area, ref_area, expected, is_key)
+        occluded = _occluded_by_transients(ds, fids, hl, n_obj) if grey is not None else {}
         conf = hl.predicted  # the honest confidence: a predicted J, calibrated on real footage
         with rep.step("previews"):
             for group in (tiles, video):
                 for p, tile in group.items():
-                    worst = int(hl.state[p].max()) if n_obj else 0
-                    text = f"c={conf[p].min():.2f}" + (f" {H.STATES[worst]}" if worst else "") if n_obj else ""
+                    worst = int(hl.state[p, :n_obj].max()) if n_obj else 0
+                    text = f"c={conf[p, :n_obj].min():.2f}" + (f" {H.STATES[worst]}" if worst else "") if n_obj else ""
                     second_line(tile, text, alert=worst > 0)
             prev_dir = ds / PREVIEWS_DIR
             if tiles:
@@ -178,7 +187,7 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
                         vw.write(video[p])
         reach = keyframe_reach(motion, keys) if len(fids) > 1 else []
         far = sorted((x for x in reach if x[2] > MAX_REACH), key=lambda x: -x[2])
-        picks = next_keyframes(conf, is_key, suggest, hl.stretches["lost"],
+        picks = next_keyframes(conf[:, :n_obj], is_key, suggest, hl.stretches["lost"][:n_obj],
                                [reach_suggestion(motion, a, b, keys) for a, b, _ in far[:3]])
         mean_pred = hl.mean_predicted(is_key)
         rep.figures.update({
@@ -202,6 +211,12 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, work_long_side: int 
                          "ref_share": [round(float(v), 6) for v in ref_area[:, k]],
                          "expected": [bool(v) for v in expected[:, k]]} for k, n in enumerate(kf.names)},
         })
+        rep.figures["transients"] = {
+            "ignore_keyframes": sorted(f for f, m in kf.masks.items() if (m == IGNORE).any()),
+            "frames": int((transient_share > 0).sum()), "mean_share": round(float(transient_share.mean()), 5),
+            "max_share": round(float(transient_share.max(initial=0.0)), 5),
+            "share": {fids[i]: round(float(v), 5) for i, v in enumerate(transient_share) if v > 0}}
+        rep.figures["transients"]["occluded"] = {kf.names[k]: _stretch_text(fids, runs) for k, runs in occluded.items()}
         rep.figures["keyframe_reach"] = [{"first": fids[a], "last": fids[b], "reach": round(r, 4)} for a, b, r in reach]
         rep.figures["max_keyframe_reach"] = round(max((r for _, _, r in reach), default=0.0), 4)
         for k, n in enumerate(kf.names):
@@ -243,7 +258,7 @@ class _Cues:
             self.area[pos], self.centroid[pos], self.thin[pos] = key_refs[pos].area, key_refs[pos].centroid, \
                 key_refs[pos].thin
             return
-        labels = _argmax_labels(res.soft)
+        labels = argmax_labels(res.soft)
         near = min(key_refs, key=lambda k: abs(k - pos))
         around = [k for k in key_refs if k < pos][-1:] + [k for k in key_refs if k > pos][:1]  # keys are sorted
         cue, self.centroid[pos] = H.frame_cues(labels, prop.cache.work(pos), key_refs[near],
@@ -257,6 +272,45 @@ class _Cues:
                 f, b = res.fwd == k + 1, res.bwd == k + 1
                 u = int((f | b).sum())
                 self.agree[pos, k] = (f & b).sum() / u if u else 1.0
+
+
+def _occluded_by_transients(ds: Path, fids: list[str], hl: H.Health, n_obj: int,
+                            share: float = 0.7) -> dict[int, list[tuple[int, int]]]:
+    """Lost stretches where a person / hand stands in front of the object: on every frame of the stretch, the
+    object's mask on the nearest frame that shows it is, for at least `share` of its pixels, either still the
+    object or covered by the transient layer. They are occluded, not lost: taken out of the lost state (no warning,
+    no suggested keyframe), their confidence that of the frame the object was seen on. Returns object -> the
+    stretches so relabelled."""
+    out: dict[int, list[tuple[int, int]]] = {}
+    for k in range(n_obj):
+        kept = []
+        for a, b in hl.stretches["lost"][k]:
+            seen = [i for i in (a - 1, b + 1) if 0 <= i < len(fids) and hl.state[i, k] == 0]
+            ref = min(seen, key=lambda i: min(abs(i - a), abs(i - b))) if seen else None
+            covered = _covered(ds, fids, ref, range(a, b + 1), k) if ref is not None else 0.0
+            if covered >= share:
+                hl.state[a:b + 1, k] = 0
+                hl.predicted[a:b + 1, k] = hl.predicted[ref, k]
+                out.setdefault(k, []).append((a, b))
+            else:
+                kept.append((a, b))
+        hl.stretches["lost"][k] = kept
+    return out
+
+
+def _covered(ds: Path, fids: list[str], ref: int, frames: range, k: int) -> float:
+    """Least share, over `frames`, of object k's mask on frame `ref` that the object's mask there or the transient
+    layer accounts for (the pixels still shown, plus those a person / hand now hides)."""
+    obj = np.load(mask_file(ds, fids[ref]))[..., k]
+    if not obj.any():
+        return 0.0
+    least = 1.0
+    for i in frames:
+        tr = read_transient(ds, fids[i], obj.shape)
+        hidden = float((tr & obj).sum()) if tr is not None else 0.0
+        shown = float(np.load(mask_file(ds, fids[i]))[..., k].sum())
+        least = min(least, (shown + hidden) / obj.sum())
+    return least
 
 
 def _stretch_text(fids: list[str], runs: list[tuple[int, int]]) -> str:

@@ -24,8 +24,15 @@ import cv2
 import numpy as np
 
 from ..conventions import UNANNOTATED
-from .appearance import AppearanceConfig, ColourModel, joint_log_table, quantize
+from .appearance import AppearanceConfig, ColourModel, joint_log_table
 from .flow import FlowConfig, FlowEngine, Step, make_step, sampling_grid
+from .soft import anchor_soft, argmax_channels, argmax_labels, channels_to_labels, chsum, filter_objects
+from .workframes import DENSE_WORK_LONG_SIDE, WORK_LONG_SIDE, FrameCache, auto_work_long_side, work_size
+
+# the names tests and older callers import from here
+_argmax_labels, _argmax_channels, _channels_to_labels = argmax_labels, argmax_channels, channels_to_labels
+__all__ = ["TrackConfig", "FrameResult", "Propagator", "median_motion", "FrameCache", "WORK_LONG_SIDE",
+           "DENSE_WORK_LONG_SIDE", "auto_work_long_side", "work_size", "anchor_soft", "filter_objects", "chsum"]
 
 
 @dataclass(frozen=True)
@@ -61,95 +68,6 @@ class FrameResult:
     bwd: np.ndarray | None = None           # (h, w) uint8 labels of the backward chain alone
     trust: np.ndarray | None = None         # (h, w) trust of the last step(s) into this frame
     dist: tuple[int | None, int | None] = (None, None)  # frames from the previous / next keyframe
-
-
-class FrameCache:
-    """Full-size RGB and work-size grey/colour images, loaded once and kept for the current gap."""
-
-    def __init__(self, load: Callable[[int], np.ndarray], work_size: tuple[int, int], bins: int = 16):
-        self.load = load
-        self.work_size = work_size  # (w, h)
-        self.n_bins = bins
-        self._full: dict[int, np.ndarray] = {}
-        self._work: dict[int, np.ndarray] = {}
-        self._bins: dict[int, np.ndarray] = {}
-
-    def full(self, pos: int) -> np.ndarray:
-        if pos not in self._full:
-            self._full[pos] = self.load(pos)
-        return self._full[pos]
-
-    def work(self, pos: int) -> np.ndarray:
-        if pos not in self._work:
-            img = self.full(pos)
-            if (img.shape[1], img.shape[0]) != self.work_size:
-                img = cv2.resize(img, self.work_size, interpolation=cv2.INTER_AREA)
-            self._work[pos] = img
-        return self._work[pos]
-
-    def bins(self, pos: int) -> np.ndarray:
-        """The work image's colour bins (`appearance.quantize`), computed once per frame."""
-        q = self._bins.get(pos)
-        if q is None:
-            q = self._bins[pos] = quantize(self.work(pos), self.n_bins)
-        return q
-
-    def put(self, pos: int, full: np.ndarray, work: np.ndarray) -> None:
-        """Images decoded elsewhere (the flow worker); kept only if not already cached."""
-        self._full.setdefault(pos, full)
-        self._work.setdefault(pos, work)
-
-    def peek(self, pos: int) -> np.ndarray | None:
-        """The full-size image if it is still cached (no load)."""
-        return self._full.get(pos)
-
-    def keep_only(self, keep: set[int]) -> None:
-        for d in (self._full, self._work, self._bins):
-            for k in [k for k in d if k not in keep]:
-                d.pop(k, None)
-
-    def drop(self, pos: int) -> None:
-        for d in (self._full, self._work, self._bins):
-            d.pop(pos, None)
-
-
-# auto work size: long chains need the finer grid (drift accumulates step by step); when every keyframe gap is
-# short, both chains re-anchor within a few steps and the coarser grid costs little (DAVIS, keyframe every 10:
-# IoU 0.955 -> 0.941 and 0.946 -> 0.931, 1.5x faster; first frame only: 0.908 -> 0.898 and 0.807 -> 0.789)
-WORK_LONG_SIDE = 480
-DENSE_WORK_LONG_SIDE = 400
-DENSE_GAP = 12  # frames
-
-
-def auto_work_long_side(keys: Iterable[int], n_frames: int) -> int:
-    """The work size for keyframes at `keys` (positions) in a sequence of n_frames."""
-    keys = sorted(keys)
-    if not keys:
-        return WORK_LONG_SIDE
-    longest = max([keys[0], n_frames - 1 - keys[-1], *(b - a for a, b in zip(keys[:-1], keys[1:]))])
-    return DENSE_WORK_LONG_SIDE if longest <= DENSE_GAP else WORK_LONG_SIDE
-
-
-def work_size(w: int, h: int, long_side: int) -> tuple[int, int]:
-    if long_side <= 0 or max(w, h) <= long_side:
-        return w, h
-    s = long_side / max(w, h)
-    return max(8, round(w * s)), max(8, round(h * s))
-
-
-def anchor_soft(index_map: np.ndarray, n_objects: int, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Keyframe index map -> (soft map (h, w, K+1) at work size, known (h, w) in [0, 1]); 255 = unknown."""
-    known = (index_map != UNANNOTATED).astype(np.float32)
-    onehot = np.zeros(index_map.shape + (n_objects + 1,), np.float32)
-    for k in range(n_objects):
-        onehot[..., k] = index_map == k + 1
-    onehot[..., n_objects] = index_map == 0
-    if (index_map.shape[1], index_map.shape[0]) != size:
-        onehot = cv2.resize(onehot, size, interpolation=cv2.INTER_AREA).reshape(size[1], size[0], -1)
-        known = cv2.resize(known, size, interpolation=cv2.INTER_AREA)
-    soft = onehot / np.maximum(onehot.sum(-1, keepdims=True), 1e-6)
-    soft[known < 1e-3] = 1.0 / (n_objects + 1)
-    return soft.astype(np.float32), known
 
 
 class Propagator:
@@ -350,7 +268,7 @@ class Propagator:
             sub = 0.5 if w >= 2 * self.wsize[0] else 1.0  # fast guided filter only when full size is much larger
             soft = filter_objects(lambda x: cv2.ximgproc.guidedFilter(grey, x, r * scale, self.cfg.refine_eps,
                                                                       dDepth=-1, scale=sub), soft)
-        return _argmax_labels(soft)
+        return argmax_labels(soft)
 
     # -- the whole sequence --------------------------------------------------------------------------------
     def run(self, anchors: dict[int, np.ndarray]) -> Iterator[FrameResult]:
@@ -408,7 +326,7 @@ class Propagator:
         prev = k
         for i, t in enumerate(order):
             soft, acc, trust = self.advance(soft, acc, prev, t, model)
-            lab = _argmax_labels(soft)
+            lab = argmax_labels(soft)
             dist = (None, i + 1) if nxt else (i + 1, None)
             yield FrameResult(t, self.labels_full(soft, t), soft=soft, fwd=None if nxt else lab,
                               bwd=lab if nxt else None, trust=trust, dist=dist)
@@ -442,7 +360,7 @@ class Propagator:
         for t in range(b - 1, a, -1):
             soft, acc, trust = self.advance(soft, acc, t + 1, t, model)
             sf, cf, tf = (x.astype(np.float32, copy=False) for x in fwd.pop(t))
-            lf, lb = _argmax_channels(sf), _argmax_channels(soft)
+            lf, lb = argmax_channels(sf), argmax_channels(soft)
             if self.cfg.fusion:
                 # a chain whose pixel came from outside its keyframe's view (or an unannotated part) knows
                 # nothing there: weight zero, whatever its distance
@@ -456,8 +374,8 @@ class Propagator:
             else:
                 fused = sf
             c = sf.shape[-1]
-            yield FrameResult(t, self.labels_full(fused, t), soft=fused, fwd=_channels_to_labels(lf, c),
-                              bwd=_channels_to_labels(lb, c), trust=0.5 * (tf + trust), dist=(t - a, b - t))
+            yield FrameResult(t, self.labels_full(fused, t), soft=fused, fwd=channels_to_labels(lf, c),
+                              bwd=channels_to_labels(lb, c), trust=0.5 * (tf + trust), dist=(t - a, b - t))
             self.release(pair=t, frame=t)  # the next gap's forward chain starts at b: it never needs t
         if b > a + 1 and (start_a[1] < 1).any():
             s, c, _ = self.advance(soft, acc, a + 1, a, model)
@@ -522,52 +440,3 @@ def median_motion(flow: np.ndarray, stride: int = 4) -> float:
     """Median displacement of a (h, w, 2) flow field as a fraction of its width: how far the view moved."""
     f = flow[::stride, ::stride]
     return float(np.median(np.sqrt(f[..., 0] ** 2 + f[..., 1] ** 2))) / flow.shape[1]
-
-
-def chsum(x: np.ndarray) -> np.ndarray:
-    """Per-pixel sum over the last axis, (h, w, C) -> (h, w, 1); numpy's reduction over a short last axis is slow."""
-    c = x.shape[-1]
-    if c <= 4 and x.dtype == np.float32:
-        return cv2.transform(x, np.ones((1, c), np.float32))[..., None] if c > 1 else x.copy()
-    return x.sum(-1, keepdims=True)
-
-
-def filter_objects(fn: Callable[[np.ndarray], np.ndarray], soft: np.ndarray) -> np.ndarray:
-    """Apply a linear, constant-preserving filter (resize, guided filter) to a (h, w, K+1) soft map.
-
-    Only the K object channels are filtered: the channels sum to one, so the filtered background is one minus
-    the filtered objects, exactly; with one object this halves the cost of the step.
-    """
-    k = soft.shape[-1] - 1
-    obj = fn(np.ascontiguousarray(soft[..., :k]) if k > 1 else np.ascontiguousarray(soft[..., 0]))
-    obj = obj.reshape(obj.shape[0], obj.shape[1], k)
-    out = np.empty(obj.shape[:2] + (k + 1,), np.float32)
-    out[..., :k] = obj
-    out[..., k] = 1.0 - (chsum(obj)[..., 0] if k > 1 else obj[..., 0])
-    return out
-
-
-def _argmax_labels(soft: np.ndarray) -> np.ndarray:
-    """(h, w, K+1) soft (background last) -> uint8 index map (0 = background, k = object k-1)."""
-    return _channels_to_labels(_argmax_channels(soft), soft.shape[-1])
-
-
-def _argmax_channels(soft: np.ndarray) -> np.ndarray:
-    """(h, w, C) -> (h, w) uint8 channel of the maximum; ties go to the lower channel, as argmax does.
-
-    A running maximum over the few channels: numpy's argmax over a short last axis is several times slower.
-    """
-    best = soft[..., 0].copy()
-    idx = np.zeros(best.shape, np.uint8)
-    for j in range(1, soft.shape[-1]):
-        ch = soft[..., j]
-        idx[ch > best] = j
-        np.maximum(best, ch, out=best)
-    return idx
-
-
-def _channels_to_labels(idx: np.ndarray, c: int) -> np.ndarray:
-    """Channel index (background = channel c-1) -> index map (0 = background, k = object k-1)."""
-    out = idx + np.uint8(1)
-    out[out == c] = 0
-    return out

@@ -6,21 +6,11 @@ API (see docs/synth.md and docs/interfaces.md):
     write_capture(cfg, out_dir); Capture.open(out_dir); truth_dataset(capture_dir, ds_dir, size=(320, 240))
 """
 
+from .capture import Capture, write_capture
 from .config import SynthConfig, list_presets, load_preset
 from .scene import RenderResult, Scene, build_scene
+from .truth import truth_articulation, truth_dataset
 
 __all__ = ["SynthConfig", "build_scene", "Scene", "RenderResult", "write_capture", "Capture", "truth_dataset",
            "truth_articulation", "list_presets", "load_preset"]
 
-
-def __getattr__(name: str):
-    # capture / truth pull in PyAV; load them on first use
-    if name in ("write_capture", "Capture"):
-        from . import capture
-
-        return getattr(capture, name)
-    if name in ("truth_dataset", "truth_articulation"):
-        from . import truth
-
-        return getattr(truth, name)
-    raise AttributeError(name)

@@ -16,9 +16,11 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+import av
 import cv2
 import numpy as np
 import yaml
+from tqdm import tqdm
 
 from .. import __version__, atomic
 from ..conventions import fid_of_index, frame_name
@@ -91,8 +93,6 @@ def write_capture(cfg: SynthConfig, out_dir: str | Path, progress: bool = True,
 
     An existing capture in out_dir is replaced; any other existing video.mp4 / gt / annotations is an error.
     """
-    from tqdm import tqdm
-
     cfg.check()
     out = Path(out_dir)
     _check_target(out)
@@ -313,8 +313,6 @@ class Capture:
 
     def frames(self) -> Iterator[tuple[int, np.ndarray]]:
         """(index, RGB uint8) for every video frame, decoded with PyAV."""
-        import av
-
         with av.open(str(self.video_path)) as container:
             for i, frame in enumerate(container.decode(video=0)):
                 yield i, frame.to_ndarray(format="rgb24")

@@ -12,6 +12,7 @@ from typing import Any
 import yaml
 
 from ..errors import InputError
+from ..options import option
 
 PRESETS_DIR = Path(__file__).resolve().parent.parent / "presets"
 TEXTURES = ("photo", "low", "none")
@@ -22,33 +23,36 @@ MAX_ROOM_SCALE = 2.5  # truth depth PNGs hold up to 16.4 m
 
 @dataclass
 class SynthConfig:
-    """What to simulate. Defaults: a 10 s, 640x480 phone clip of a room with a fridge door and a drawer."""
+    """What to simulate. Defaults: a 10 s, 640x480 phone clip of a room with a fridge door and a drawer. The fields
+    declared with `option` are the flags of `interreal synth`."""
 
-    frames: int = 300
+    frames: int = option(300, "number of video frames (300 = 10 s at 30 fps)")
     width: int = 640
     height: int = 480
-    seed: int = 0
-    parts: int = 2  # interactive parts, 1..10 (fridge door, top drawer, microwave door, ...)
-    fps: float = 30.0
-    hfov_deg: float = 65.0  # horizontal field of view of the (undistorted) pinhole
+    seed: int = option(0, "random seed: textures, camera path, schedules")
+    parts: int = option(2, "interactive parts, 1-10 (2: fridge door, top drawer; then microwave door, ...)")
+    fps: float = option(30.0, "frame rate")
+    hfov_deg: float = option(65.0, "horizontal field of view of the (undistorted) pinhole in degrees", flag="--hfov")
     k1: float = -0.05  # radial distortion, OpenCV model
     k2: float = 0.01
-    texture: str = "photo"  # room surfaces (walls, floor, ceiling): photo | low | none
+    texture: str = option("photo", "room surface texture (walls, floor, ceiling)", choices=TEXTURES)
     texture_contrast: float = 0.8  # photo contrast around its mean (lower = easier to fit for a radiance field)
-    motion_blur: float = 0.0  # shutter open time as a fraction of the frame interval (0 = sharp)
+    motion_blur: float = option(0.0, "shutter time as a fraction of the frame interval, 0-1 (0 = sharp)")
     blur_samples: int = 5  # sub-frame renders averaged when motion_blur > 0
-    supersample: int = 1  # s x s rays per pixel for the video (anti-aliasing; costs s^2)
-    noise: float = 0.0  # sensor noise std, 8-bit levels (e.g. 3 = mild, 8 = strong)
-    exposure_drift: float = 0.0  # relative auto-exposure swing (0.2 = +-20 %)
-    speed: float = 1.0  # camera speed multiplier (fast motion: the arc is swept back and forth)
-    jitter: float = 1.0  # hand-shake scale (0 = tripod-smooth)
-    occluder: float = 0.0  # fraction of frames in which a person walks across the view (0 = none)
-    articulation: float = 1.0  # scale of each part's range of motion (angle / slide length)
-    room_scale: float = 1.0  # room floor plan and camera distance x this (furniture keeps its size; 0.7 small, 1.6 large)
-    keyframe_every: int = 60  # annotated keyframe masks: every Nth frame, first, last, and where a part they miss shows most
-    label_fraction: float = 0.1  # fraction of frames with annotated states (plus the keyframes)
-    crf: int = 18  # H.264 quality
-    threads: int = 2  # render threads
+    supersample: int = option(1, "S x S rays per pixel in the video (anti-aliasing, S^2 the cost)")
+    noise: float = option(0.0, "sensor noise std in 8-bit levels (3 = mild, 8 = strong)")
+    exposure_drift: float = option(0.0, "auto-exposure swing, e.g. 0.2 = +-20 %")
+    speed: float = option(1.0, "camera speed multiplier (fast motion: the arc is swept back and forth)")
+    jitter: float = option(1.0, "hand-shake scale (0 = tripod-smooth)")
+    occluder: float = option(0.0, "fraction of frames a person walks across the view, 0-1")
+    articulation: float = option(1.0, "scale of each part's range of motion (angle / slide length)")
+    room_scale: float = option(1.0, "room floor plan and camera distance x this, 0.65-2.5; furniture keeps its size "
+                                    "(1: 6 x 5 m; 0.7 small, 1.6 large)")
+    keyframe_every: int = option(60, "annotated keyframe masks every N frames (+ first, last, and where a part they "
+                                     "miss shows most)")
+    label_fraction: float = option(0.1, "fraction of frames with annotated states (plus the keyframes)")
+    crf: int = option(18, "H.264 quality, lower = better")
+    threads: int = option(2, "render threads")
 
     def check(self) -> "SynthConfig":
         """Raise InputError on settings that cannot produce a capture; returns self."""

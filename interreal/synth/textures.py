@@ -14,6 +14,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import skimage.data
+from PIL import Image
 
 TILE = 256  # texels per tile side
 PAD = 4  # texels between tiles in the atlas (bilinear never bleeds across)
@@ -35,13 +37,9 @@ _FILES = {"astronaut": "astronaut.png", "coffee": "coffee.png", "chelsea": "chel
 
 def _load(name: str) -> np.ndarray:
     """Pixels of skimage.data.<name>() (uint8 gray / RGB / RGBA)."""
-    import skimage.data
-
     path = Path(skimage.data.__file__).parent / _FILES.get(name, "")
     if name not in _FILES or not path.is_file():
         return np.asarray(getattr(skimage.data, name)())
-    from PIL import Image
-
     with Image.open(path) as im:
         return np.asarray(im)
 

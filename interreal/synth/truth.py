@@ -9,20 +9,20 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from .. import dataset as D
 from ..atomic import write_image
-from ..conventions import fid_of_index, frame_index, frame_name, index_to_onehot
+from ..conventions import fid_of_index, frame_index, frame_name, index_to_onehot, opengl_to_opencv
 from ..errors import InputError
-from ..report import StageReport
+from ..posefit import umeyama
+from ..report import StageReport, report_path
 from .capture import Capture
 
 
 def surface_box(cap: Capture, every: int = 10) -> list[float]:
     """World box [x0, y0, z0, x1, y1, z1] of the surfaces the capture saw (depth back-projected, 0.5-99.5
     percentiles, 5 % pad): the `aabb` a radiance field should cover."""
-    from ..conventions import opengl_to_opencv
-
     intr = cap.intrinsics
     pts = []
     for i in range(0, len(cap), every):
@@ -46,8 +46,6 @@ def truth_articulation(capture_dir: str | Path, ds_dir: str | Path) -> dict[str,
     """The capture's true part motions in the dataset's world frame (a similarity fitted to the camera centres,
     so an SfM dataset of the capture gets them in its own units): the reference `interreal motions` is scored
     against, and an oracle for the trainer."""
-    from ..scoring import umeyama
-
     cap = Capture.open(capture_dir)
     ds = D.load_dataset(ds_dir)
     est = np.stack([f.c2w[:3, 3] for f in ds.frames])
@@ -69,15 +67,13 @@ def truth_dataset(capture_dir: str | Path, ds_dir: str | Path, size: tuple[int, 
     gt instance maps (the occluding person is background); poses and intrinsics (scaled) from gt/cameras.json;
     labels from annotations/states.yaml. Frames: every `every`-th frame plus every annotated one.
     """
-    from tqdm import tqdm
-
     cap = Capture.open(capture_dir)
     ds = Path(ds_dir)
     w, h = int(size[0]), int(size[1])
     if w < 8 or h < 8 or every < 1:
         raise InputError(f"truth_dataset: size must be >= 8x8 and every >= 1 (got {w}x{h}, every={every})")
     if ds.exists():
-        if any(ds.iterdir()) and not (ds / "reports" / "synth_truth.json").exists():
+        if any(ds.iterdir()) and not report_path(ds, "synth_truth").exists():
             raise InputError(f"{ds} exists and was not made by truth_dataset: choose an empty folder")
         shutil.rmtree(ds)
     ds.mkdir(parents=True)

@@ -4,17 +4,18 @@
   (local CLIP weights). Optional extra `language`.
 - `retrieval`: maximum-probability retrieval of objects by their name / description embeddings.
 - `grounding`: the chosen object's rendered probability map -> mask, overlay, IoU.
-- `commands`: command parsing, `apply_command(run, text)` for `livescene render --command`, the `ground` CLI.
+- `commands`: spoken-command parsing, `ground_query`, `apply_command(run, text)` for `livescene render --command`
+  (the `livescene ground` command itself is `livescene/commands/ground.py`).
 """
 
 from __future__ import annotations
 
-from .commands import Command, add_arguments, apply_command, ground_query, main, object_texts, parse_command
+from .commands import Command, apply_command, ground_query, object_texts, parse_command
 from .encoders import ClipEncoder, MiniLMEncoder, TextEncoder, get_encoder
 from .retrieval import Candidate, ObjectIndex, Retrieval, RetrievalConfig, require_match, retrieve
 
 __all__ = [
     "Candidate", "ClipEncoder", "Command", "MiniLMEncoder", "ObjectIndex", "Retrieval", "RetrievalConfig",
-    "TextEncoder", "add_arguments", "apply_command", "get_encoder", "ground_query", "main", "object_texts",
+    "TextEncoder", "apply_command", "get_encoder", "ground_query", "object_texts",
     "parse_command", "require_match", "retrieve",
 ]

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+import torch
 
 from interreal.errors import InputError, MissingExtraError
 
@@ -125,8 +126,6 @@ class ClipEncoder:
         self.id = f"clip:{arch}:{self.path.resolve()}"
 
     def encode(self, texts: list[str]) -> np.ndarray:
-        import torch
-
         with torch.no_grad():
             if self._kind == "transformers":
                 batch = self._tok(list(texts), padding=True, truncation=True, return_tensors="pt").to(self.device)

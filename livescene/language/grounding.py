@@ -11,12 +11,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
+import cv2
 import numpy as np
 
 from interreal import atomic
-from interreal.conventions import frame_id
+from interreal.conventions import frame_id, mask_file
 from interreal.errors import InputError
-from livescene.errors import LiveSceneError
+from ..errors import LiveSceneError
+from ..render import render_view
 
 DEFAULT_VIEWS = 4
 OVERLAY_COLOR = np.array([255, 40, 40], dtype=np.float32)
@@ -60,8 +62,6 @@ def mask_iou(pred: np.ndarray, truth: np.ndarray) -> float | None:
 
 def overlay(rgb: np.ndarray, mask: np.ndarray, alpha: float = 0.55) -> np.ndarray:
     """The render with the mask tinted red and its outline drawn, for a person to check at a glance."""
-    import cv2
-
     out = rgb.astype(np.float32).copy()
     out[mask] = (1 - alpha) * out[mask] + alpha * OVERLAY_COLOR
     out = out.clip(0, 255).astype(np.uint8)
@@ -72,8 +72,6 @@ def overlay(rgb: np.ndarray, mask: np.ndarray, alpha: float = 0.55) -> np.ndarra
 
 def check_run_has_masks(run: Any) -> None:
     """A run trained without object masks has an untrained probability field: refuse to ground with it."""
-    from interreal.conventions import mask_file
-
     if not run.names:
         raise LiveSceneError("the run has no objects (empty mapping.yaml): there is nothing to ground")
     loss = getattr(run.config, "loss", None)
@@ -121,8 +119,6 @@ def frame_views(run: Any, spec: str | Sequence[str] | None = None) -> list[View]
 
 def render_mask(run: Any, view: View, obj: int, mask_threshold: float = 0.5) -> ViewMask:
     """Render one view and threshold the chosen object's probability."""
-    from livescene.render import render_view
-
     out = render_view(run, view.c2w_gl, view.intrinsics, view.states or None, time=view.time)
     probs = _numpy(out["probs"])
     if probs.ndim != 3 or obj >= probs.shape[-1] - 1:

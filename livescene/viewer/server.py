@@ -14,13 +14,12 @@ import html
 import json
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from interreal.errors import InterRealError, MissingExtraError
 from interreal.localserver import LocalGuard, LocalServer, allowed_hosts
 
-if TYPE_CHECKING:
-    from .session import ViewerSession
+from .session import ViewError, ViewerSession, parse_view
 
 STATIC_DIR = Path(__file__).resolve().parent.parent / "viewer_static"
 STATIC_FILES = {"viewer.js": "text/javascript; charset=utf-8", "viewer.css": "text/css; charset=utf-8"}
@@ -48,8 +47,6 @@ def create_app(session: "ViewerSession", token: str, port: int, host: str = "127
     from fastapi import FastAPI, HTTPException, Request
     from fastapi.responses import HTMLResponse, JSONResponse, Response
     from starlette.concurrency import run_in_threadpool
-
-    from .session import ViewError, parse_view
 
     cookie = f"livescene_token_{port}"
     app = FastAPI(title="livescene view", docs_url=None, redoc_url=None, openapi_url=None)

@@ -9,6 +9,7 @@ dragging a slider stays responsive. Saved views and sweep videos go to RUN/views
 from __future__ import annotations
 
 import math
+import os
 import re
 import threading
 import time
@@ -16,17 +17,25 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, TypeVar
 
+import cv2
 import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
 
 from interreal import atomic
 from interreal.dataset import Intrinsics
+from interreal.video import write_video
 
 from ..errors import LiveSceneError
+from ..language import apply_command, parse_command
 from ..render import colorize_depth, colorize_probs, learned_frame_states, render_view, unseen_states, warn_unseen
 
 LAYERS = ("rgb", "objects", "depth")
 MAX_SIDE = 2048  # pixels; a save at a phone's full resolution fits
 MAX_SWEEP = 240  # frames
+DRAG_SCALE = 0.5  # the low image shown while dragging is rendered at this scale of its size and scaled up ...
+DRAG_TOLERANCE = 0.25  # ... with flat regions filled boldly (`livescene.adaptive`): on the demo's run, 1 thread,
+# a loaded 2-core CPU, 3.4 frames/s while dragging a slider (2.1 at 0.1)
 T = TypeVar("T")
 
 
@@ -160,8 +169,6 @@ class Rendered:
 
 def encode_png(rgb8: np.ndarray, level: int = 1) -> bytes:
     """PNG at a low compression level: at 160x120 zlib's default level costs as much as a fast render."""
-    import cv2
-
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb8[..., ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, level])
     if not ok:
         raise LiveSceneError("could not encode the rendered image as PNG")
@@ -252,13 +259,23 @@ class ViewerSession:
 
     # ------------------------------------------------------------------------------------------------- rendering
     def image(self, view: View) -> np.ndarray:
-        """(H, W, 3) uint8 of the view's layer (the render itself, no scheduling)."""
-        out = render_view(self.run, view.c2w, view.intrinsics(), view.states or None)
+        """(H, W, 3) uint8 of the view's layer (the render itself, no scheduling). The low size the page asks for
+        while something moves is rendered at `DRAG_SCALE` of it and scaled up: a drag wants frames, not detail."""
+        intr = view.intrinsics()
+        drag = (view.w, view.h) == tuple(self.low)
+        if drag:
+            intr = intr.scaled(max(8, round(view.w * DRAG_SCALE)), max(8, round(view.h * DRAG_SCALE)))
+        out = render_view(self.run, view.c2w, intr, view.states or None,
+                          tolerance=DRAG_TOLERANCE if drag else None)
         if view.layer == "objects":
-            return colorize_probs(out["probs"])
-        if view.layer == "depth":
-            return colorize_depth(out["depth"])
-        return (out["rgb"] * 255).round().astype(np.uint8)
+            rgb8 = colorize_probs(out["probs"])
+        elif view.layer == "depth":
+            rgb8 = colorize_depth(out["depth"])
+        else:
+            rgb8 = (out["rgb"] * 255).round().astype(np.uint8)
+        if rgb8.shape[:2] != (view.h, view.w):
+            rgb8 = cv2.resize(rgb8, (view.w, view.h), interpolation=cv2.INTER_LINEAR)
+        return rgb8
 
     def render(self, view: View) -> Rendered | None:
         """The view as PNG, or None when a newer request came in while this one waited."""
@@ -314,8 +331,6 @@ class ViewerSession:
         return {"started": True, "state": "running", "path": str(path)}
 
     def _sweep(self, view: View, name: str, count: int, fps: int, path: Path) -> None:
-        from ..render import write_video
-
         try:
             views = [View(view.c2w, view.w, view.h, view.fov_y, {**view.states, name: float(v)}, view.layer)
                      for v in np.linspace(0.0, 1.0, count)]
@@ -332,8 +347,6 @@ class ViewerSession:
     # ---------------------------------------------------------------------------------------------------- command
     def command(self, text: Any) -> dict[str, Any]:
         """"open the fridge" -> {"states": {"fridge door": 1.0}} via livescene.language (needs its extra)."""
-        from ..language import apply_command, parse_command
-
         if not isinstance(text, str) or not text.strip() or len(text) > 300:
             raise ViewError("command must be a non-empty text of at most 300 characters, e.g. \"open the fridge\"")
         cmd = parse_command(text)  # InputError for an unreadable command, before loading the text model
@@ -376,23 +389,34 @@ def _next_number(folder: Path, prefix: str) -> int:
 def measure(session: ViewerSession, drags: int = 8) -> dict[str, Any]:
     """The viewer's speed on this run and machine, through the same path as the page's requests (render, PNG,
     scheduler): the first low image after a slider move, frames/s while a slider is dragged, the sharp image."""
-    import torch
-
     info = session.info()
     cam = info["cameras"][info["start"]]
     c2w = np.asarray(cam["c2w"]).reshape(4, 4)
     name = session.names[0]
 
-    def timed(size: tuple[int, int], value: float) -> float:
+    def timed(size: tuple[int, int], value: float, pose: np.ndarray = c2w) -> float:
         t0 = time.perf_counter()
-        session.render(View(c2w, *size, cam["fov_y"], {name: value}))
+        session.render(View(pose, *size, cam["fov_y"], {name: value}))
         return time.perf_counter() - t0
 
     warm = timed(session.low, 0.0)  # what the renderer builds on first use
     first = timed(session.low, 0.05)
     drag = [timed(session.low, v) for v in np.linspace(0.1, 1.0, drags)]
     sharp = timed(session.sharp, 1.0)
+    orbit = [timed(session.low, 1.0, _orbit(c2w, np.asarray(info["target"]), np.asarray(info["up"]), a))
+             for a in np.linspace(1.0, 8.0, drags)]  # the camera dragged: nothing to reuse
     return {"device": str(session.run.device), "threads": torch.get_num_threads(), "object": name,
+            "load_avg": round(os.getloadavg()[0], 2),
             "low": list(session.low), "sharp": list(session.sharp), "warm_up_s": round(warm, 3),
-            "first_low_s": round(first, 3), "drag_s_per_frame": round(float(np.mean(drag)), 3),
-            "drag_fps": round(len(drag) / sum(drag), 2), "sharp_s": round(sharp, 3)}
+            "first_low_s": round(first, 3), "drag_s_per_frame": round(float(np.mean(drag)), 5),
+            "drag_fps": round(len(drag) / sum(drag), 2), "orbit_fps": round(len(orbit) / sum(orbit), 2),
+            "sharp_s": round(sharp, 3)}
+
+
+def _orbit(c2w: np.ndarray, target: np.ndarray, up: np.ndarray, degrees: float) -> np.ndarray:
+    """The camera turned about `up` through `target` by `degrees` (an orbit drag)."""
+    r = Rotation.from_rotvec(np.radians(degrees) * up / max(np.linalg.norm(up), 1e-9)).as_matrix()
+    out = c2w.copy()
+    out[:3, :3] = r @ c2w[:3, :3]
+    out[:3, 3] = target + r @ (c2w[:3, 3] - target)
+    return out

@@ -17,7 +17,11 @@ const S = {
   w: 0, h: 0, pts: [], drag: null, sliding: false, loadSeq: 0, polling: null,
 };
 const $ = (id) => document.getElementById(id);
-const color = (oid) => PALETTE[oid % PALETTE.length];
+// the ignore class (people, hands: value 254 in a keyframe PNG, the transient layer once propagated) is grey
+const IGNORE_VALUE = 254, IGNORE_OBJ = { id: -1, name: null };
+const IGNORE_COLOR = "#9e9e9e";
+const color = (oid) => (oid < 0 ? IGNORE_COLOR : PALETTE[oid % PALETTE.length]);
+const selected = () => (S.obj === -1 ? IGNORE_OBJ : S.objects[S.obj]);
 const cur = () => S.frames[S.cur];
 
 // ------------------------------------------------------------------------------------------------ server calls
@@ -220,6 +224,7 @@ function renderOverlay() {
   const px = img.data;
   const alpha = Math.round(255 * parseFloat($("opacity").value));
   const rgb = S.objects.map((o) => hexRgb(color(o.id)));
+  rgb[IGNORE_VALUE - 1] = hexRgb(IGNORE_COLOR);
   const kf = $("show-keyframe").checked && S.kf ? S.kf.index : null;
   const mk = $("show-masks").checked && S.mask ? S.mask.index : null;
   const w = S.w, h = S.h;
@@ -251,7 +256,7 @@ function renderDraw(mouse) {
   const c = $("draw-canvas");
   const ctx = c.getContext("2d");
   ctx.clearRect(0, 0, c.width, c.height);
-  const o = S.objects[S.obj];
+  const o = selected();
   const col = S.mode === "erase" ? "#ffffff" : (o ? color(o.id) : "#ffffff");
   const lw = Math.max(1.5, S.w / 400);
   ctx.lineWidth = lw;
@@ -289,7 +294,7 @@ function screenDist(a, b) {
 }
 
 async function submitShape(shape, points) {
-  const o = S.objects[S.obj];
+  const o = selected();
   if (!o) { toast("Add an object first (right panel), then draw its mask."); return; }
   const f = cur();
   const body = { object: o.id, name: o.name, shape, points, mode: S.mode };
@@ -388,7 +393,7 @@ function setMode(m) {
 }
 
 function selectObject(i) {
-  if (i < 0 || i >= S.objects.length) return;
+  if (i < -1 || i >= S.objects.length) return;  // -1: the ignore class (a person, a hand)
   S.obj = i;
   renderObjects();
   renderDraw();
@@ -440,6 +445,10 @@ function renderObjects() {
     opt.value = i; opt.textContent = `${i + 1}. ${o.name}`;
     sel.appendChild(opt);
   });
+  const ign = document.createElement("option");
+  ign.value = -1; ign.textContent = "ignore (person / hand)";
+  ign.title = "people, hands, arms: left out of poses, motions and training";
+  sel.appendChild(ign);
   sel.value = S.obj;
   const box = $("objects");
   // never rebuild under the user's hand: a slider being dragged or a name being typed would lose its edit

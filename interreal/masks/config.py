@@ -1,0 +1,39 @@
+"""The user-facing settings of the `masks` stage (`MasksConfig`): the flags of `interreal masks` and of
+`interreal process`, the keyword options of `propagate`, and the `TrackConfig` they make."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..options import option
+from .appearance import AppearanceConfig
+from .flow import FlowConfig
+from .track import TrackConfig
+
+PREVIEW_KINDS = ("sheet", "video", "both", "none")
+
+
+@dataclass
+class MasksConfig:
+    """Settings of one `interreal masks` run; the fields declared with `option` are its flags."""
+
+    work_long_side: int = option(-1, "long side of the flow/propagation resolution (0 = full size; -1 = auto: 400 "
+                                     "when every keyframe gap is at most 12 frames, else 480)",
+                                 flag="--work-size", metavar="PX")
+    flow: str = option("dis", "optical flow", choices=("dis", "rlof", "farneback"))
+    preset: str = option("fast", "DIS preset", choices=("ultrafast", "fast", "medium"))
+    appearance: float = option(0.25, "weight of the colour model (0 = off)")
+    rigid: float = option(1.0, "weight of the per-object homography motion (0 = off)")
+    fusion: bool = option(True, "forward chain only (no backward fusion)", flag="--no-fusion")
+    refine: bool = option(True, "no guided-filter boundary refinement", flag="--no-refine")
+    suggest: int = option(5, "print the N frames where one more keyframe would help most", metavar="N")
+    preview: str = option("both", "DS/previews/masks_sheet.png and/or masks_overlay.mp4", choices=PREVIEW_KINDS)
+    sfm_dilate: int | None = None  # px the SfM masks grow by (None = 0.6 % of the image diagonal, at least 2)
+
+    def track_config(self) -> TrackConfig:
+        """The propagation settings these options give."""
+        return TrackConfig(flow=FlowConfig(method=self.flow, preset=self.preset),
+                           appearance=AppearanceConfig(weight=self.appearance), work_long_side=self.work_long_side,
+                           rigid=self.rigid, fusion=self.fusion,
+                           refine_radius=TrackConfig.refine_radius if self.refine else 0,
+                           out_radius=TrackConfig.out_radius if self.refine else 0)

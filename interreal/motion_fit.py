@@ -1,0 +1,353 @@
+"""A part's motion from its per-frame rigid poses, decided by the geometry and calibrated by the labels.
+
+`interreal motions` gives, per frame that the part's own reconstruction registered, the part's pose in the world
+(`PartViews`; the reconstruction's scale unknown). Both models are fitted to those poses without any label:
+- hinge: the relative rotations share one axis; each frame's angle about it is measured, and the positions are
+  then linear in the scale, the reference pose and a point on the axis;
+- slide: the orientation stays; the positions lie on one line (scale and line found by alternating least squares).
+The kind is the hinge when the part turns clearly beyond its rotation noise *and* the angle explains the positions
+at least as well as a line does; otherwise a slide. Human state labels are eyeballed (off by 0.1-0.2), so they do
+not measure anything here: the measured displacement (angle or distance) gives every frame's state, and the labels
+only fix which end is state 0, which is 1 (snapped when they are near), and the direction. Labels that disagree
+with the measured state by more than `FLAG_TOL` are reported as likely mistakes; the motion is refused only when
+most labels disagree (the reconstruction, not the person, is then wrong).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .dataset import Articulation
+
+SLIDE_MAX_DEG = 3.0  # a part whose angle spans less than this (or less than TURN_NOISE x its noise) does not turn
+TURN_NOISE = 6.0  # a hinge's angle must span this many times the part's rotation noise
+OFF_AXIS_DEG = 3.0  # a frame whose turn leaves the hinge axis by more than this is misregistered
+POS_WORSE = 2.0  # a hinge whose positions fit this much worse than a line's (plus POS_FLOOR) is no hinge
+POS_FLOOR = 0.01  # ... share of the camera-part distance that counts as position noise
+END_SHARE = 0.05  # an end of the motion starts from the median of this share of the frames at that extreme
+END_BAND = 0.1  # ... and is the middle of the frames within this share of the span from it (where the part rests)
+SNAP = 0.2  # an end whose label fit lies within this of 0 or 1 is that state
+FLAG_TOL = 0.25  # a label further than this from the measured state is a likely mistake
+LABEL_TOL = 0.15  # the motion is refused when the labels' median disagreement exceeds this ...
+MAX_FLAGGED = 1 / 3  # ... or more than this share of the labels are flagged
+MIN_MOVE = 4.0  # a slide must move this many times its position noise (else the part did not move)
+
+
+@dataclass
+class PartViews:
+    """Per registered frame (dataset positions `frames`): the part's reconstruction seen from the world.
+
+    rot (F, 3, 3): reconstruction -> world rotation at that frame; u (F, 3): the camera-to-part offset rotated into
+    the world (world units once multiplied by the reconstruction's unknown scale); centre (F, 3): camera centre."""
+
+    frames: np.ndarray
+    rot: np.ndarray
+    u: np.ndarray
+    centre: np.ndarray
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# small robust tools
+# ----------------------------------------------------------------------------------------------------------------
+def rotvecs(r: np.ndarray) -> np.ndarray:
+    return Rotation.from_matrix(r).as_rotvec()
+
+
+def axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    return Rotation.from_rotvec(np.outer(np.atleast_1d(angle), axis)).as_matrix()
+
+
+def robust_line(x: np.ndarray, y: np.ndarray, iters: int = 20) -> tuple[float, float]:
+    """(slope, intercept) of y = slope * x + intercept, Huber-weighted (a few wrong labels or frames)."""
+    w = np.ones_like(x)
+    slope, icpt = 0.0, float(np.median(y))
+    for _ in range(iters):
+        a = np.stack([x, np.ones_like(x)], 1) * w[:, None]
+        slope, icpt = np.linalg.lstsq(a, y * w, rcond=None)[0]
+        r = np.abs(y - slope * x - icpt)
+        k = 1.345 * max(float(np.median(r)) / 0.6745, 1e-9)
+        w = np.sqrt(np.where(r <= k, 1.0, k / np.maximum(r, 1e-12)))
+    return float(slope), float(icpt)
+
+
+def robust_lstsq(a: np.ndarray, b: np.ndarray, rows: int = 3, iters: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """Huber IRLS of a x = b where each group of `rows` equations is one frame: (x, per-frame residual norms)."""
+    w = np.ones(len(b) // rows)
+    x = np.zeros(a.shape[1])
+    r = np.zeros(len(w))
+    for _ in range(iters):
+        ww = np.repeat(np.sqrt(w), rows)
+        x = np.linalg.lstsq(a * ww[:, None], b * ww, rcond=None)[0]
+        r = np.linalg.norm((a @ x - b).reshape(-1, rows), axis=1)
+        k = 1.345 * max(float(np.median(r)) / 0.6745, 1e-12)
+        w = np.where(r <= k, 1.0, k / np.maximum(r, 1e-12))
+    return x, r
+
+
+def basis(axis: np.ndarray) -> np.ndarray:
+    """(3, 2): two unit vectors perpendicular to `axis` and to each other."""
+    helper = np.eye(3)[int(np.argmin(np.abs(axis)))]
+    e1 = np.cross(axis, helper)
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(axis, e1)], 1)
+
+
+def off_axis_deg(vecs: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """(F,) how far each rotation vector (F, 3) turns about anything but `axis`, in degrees."""
+    return np.degrees(np.linalg.norm(vecs - np.outer(vecs @ axis, axis), axis=1))
+
+
+def principal(vecs: np.ndarray) -> np.ndarray:
+    """The direction rotation vectors (F, 3) lie along, weighted by their size (small turns are mostly noise)."""
+    turn = np.linalg.norm(vecs, axis=1)
+    if turn.max() < 1e-9:
+        return np.array([0.0, 0.0, 1.0])
+    _, _, vt = np.linalg.svd(vecs * turn[:, None])
+    return vt[0]
+
+
+def vote_axis(vecs: np.ndarray, candidates: int = 64) -> np.ndarray:
+    """The turn direction of one of the frames that turn clearly, the one the most frames agree with."""
+    turn = np.degrees(np.linalg.norm(vecs, axis=1))
+    big = np.flatnonzero(turn > 2 * OFF_AXIS_DEG)
+    if not len(big):
+        return principal(vecs)  # nothing turns beyond the noise: any axis will do (a slide)
+    big = big[np.linspace(0, len(big) - 1, min(candidates, len(big))).round().astype(int)]
+    axes = vecs[big] / np.linalg.norm(vecs[big], axis=1, keepdims=True)
+    votes = [int((off_axis_deg(vecs, a) < OFF_AXIS_DEG).sum()) for a in axes]
+    return axes[int(np.argmax(votes))]
+
+
+def consensus(rot: np.ndarray, tries: int = 12) -> tuple[int, np.ndarray, np.ndarray]:
+    """(reference frame, hinge axis, inliers (F,) bool): the relative rotations of a rigid part's frames share one
+    axis; a misregistered frame does not. Up to `tries` frames are tried as the reference (it may be misregistered
+    itself); the axis is the one most frames agree with (within OFF_AXIS_DEG), refitted on those."""
+    best: tuple[int, int, np.ndarray, np.ndarray] | None = None
+    cands = np.linspace(0, len(rot) - 1, min(tries, len(rot))).round().astype(int)
+    for ref in cands:
+        vecs = rotvecs(np.einsum("fij,kj->fik", rot, rot[ref]))
+        axis = vote_axis(vecs)
+        inl = np.ones(len(vecs), bool)
+        for _ in range(3):
+            inl = off_axis_deg(vecs, axis) < OFF_AXIS_DEG
+            axis = principal(vecs[inl]) if inl.sum() >= 2 else axis
+        if best is None or inl.sum() > best[1]:
+            best = (int(ref), int(inl.sum()), axis, inl)
+    assert best is not None
+    return best[0], best[2], best[3]
+
+
+def still_frames(rot: np.ndarray) -> np.ndarray:
+    """(F,) bool: frames whose rotation stays within max(SLIDE_MAX_DEG, 3 x the median) of the mean orientation
+    (recomputed on the kept frames, so a flipped frame does not pull it)."""
+    rots = Rotation.from_matrix(rot)
+    keep = np.ones(len(rot), bool)
+    for _ in range(3):
+        dev = np.degrees((rots * rots[keep].mean().inv()).magnitude())
+        keep = dev <= max(SLIDE_MAX_DEG, 3 * float(np.median(dev)))
+    return keep
+
+
+def ends(d: np.ndarray, iters: int = 3) -> tuple[float, float]:
+    """The two ends of a displacement (F,). A part rests at its ends (closed, open) for many frames, so an end is
+    the middle of the frames within END_BAND of the span from it, re-centred a few times, starting from the median
+    of the END_SHARE most extreme frames: the extremes alone sit ~2 noise widths beyond the true end (a noisy
+    drawer's range came out 15 % long)."""
+    k = max(1, int(round(END_SHARE * len(d))))
+    s = np.sort(d)
+    lo, hi = float(np.median(s[:k])), float(np.median(s[-k:]))
+    band = END_BAND * (hi - lo)
+    for _ in range(iters):
+        lo, hi = float(np.median(s[s <= lo + band])), float(np.median(s[s >= hi - band]))
+    return lo, hi
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the two models, fitted without labels
+# ----------------------------------------------------------------------------------------------------------------
+@dataclass
+class Fit:
+    """One model's fit: displacement d (F,) (radians about `axis` or world units along it), the frames it
+    trusts (ok), per-frame position residual (world units), its scale, a point (hinge: on the axis; slide: the
+    reference position) and figures for the report."""
+
+    kind: str
+    axis: np.ndarray
+    point: np.ndarray
+    d: np.ndarray
+    ok: np.ndarray
+    pos_resid: np.ndarray
+    scale: float
+    figures: dict[str, Any]
+
+
+def rotation_noise_deg(vecs: np.ndarray, axis: np.ndarray, ok: np.ndarray) -> float:
+    """Per-frame rotation noise: the off-axis turn between consecutive trusted frames (no hinge turns there)."""
+    idx = np.flatnonzero(ok)
+    if len(idx) < 3:
+        return float(np.median(off_axis_deg(vecs[ok], axis))) if ok.any() else 0.0
+    step = vecs[idx[1:]] - vecs[idx[:-1]]  # small turns: rotation vectors subtract
+    return float(np.median(off_axis_deg(step, axis))) / np.sqrt(2)
+
+
+def fit_hinge(pv: PartViews) -> Fit:
+    """Axis and angle from the rotations alone; scale, reference position and axis point from the translations:
+    sigma u_f + C_f = R_f b + (I - R_f) o, o = B w (linear), R_f the turn relative to the reference frame."""
+    ref, axis, ok = consensus(pv.rot)
+    vecs = rotvecs(np.einsum("fij,kj->fik", pv.rot, pv.rot[ref]))
+    angle = vecs @ axis
+    moved = axis_angle(axis, angle)
+    bas = basis(axis)
+    f = len(pv.frames)
+    a = np.concatenate([pv.u[..., None], -moved, -((np.eye(3)[None] - moved) @ bas)], axis=2)
+    sol, _ = robust_lstsq(a[ok].reshape(-1, 6), -pv.centre[ok].reshape(-1))
+    resid = np.linalg.norm((a.reshape(3 * f, 6) @ sol + pv.centre.reshape(-1)).reshape(f, 3), axis=1)
+    lo, hi = ends(angle[ok]) if ok.any() else (0.0, 0.0)
+    fig = {"turn_deg": round(float(np.degrees(hi - lo)), 2),
+           "rot_noise_deg": round(float(rotation_noise_deg(vecs, axis, ok)), 3),
+           "off_axis_deg": round(float(np.median(off_axis_deg(vecs[ok], axis))), 3) if ok.any() else None,
+           "hinge_rejected": int((~ok).sum())}
+    return Fit("hinge", axis, bas @ sol[4:6], angle, ok, resid, float(sol[0]), fig)
+
+
+def fit_slide(pv: PartViews, iters: int = 15) -> Fit:
+    """Scale and line of p_f = sigma u_f + C_f = b + d_f v over the frames that keep the part's usual orientation
+    (a slide does not turn): alternately the line of the points (PCA) and the scale with the line's direction held
+    (linear once the direction is projected out)."""
+    ok = still_frames(pv.rot)
+    u, c = pv.u[ok], pv.centre[ok]
+    uc, cc = u - u.mean(0), c - c.mean(0)
+    sigma = -float((uc * cc).sum() / max((uc * uc).sum(), 1e-12))  # as if the part never moved
+    v = np.array([1.0, 0.0, 0.0])
+    b = np.zeros(3)
+    for _ in range(iters):
+        p = sigma * u + c
+        _, _, vt = np.linalg.svd(p - np.median(p, 0))
+        v = vt[0]
+        q = np.eye(3) - np.outer(v, v)
+        a = np.concatenate([(u @ q)[..., None], -np.broadcast_to(q, (len(u), 3, 3))], axis=2).reshape(-1, 4)
+        sol, _ = robust_lstsq(a, -(c @ q).reshape(-1))
+        sigma, b = float(sol[0]), sol[1:4]
+    p = sigma * pv.u + pv.centre
+    d = (p - b) @ v
+    q = np.eye(3) - np.outer(v, v)
+    resid = np.linalg.norm((p - b) @ q, axis=1)
+    fig = {"slide_rejected": int((~ok).sum())}
+    return Fit("slide", v, b, d, ok, resid, sigma, fig)
+
+
+def choose(hinge: Fit, slide: Fit, pv: PartViews) -> tuple[Fit, dict[str, Any]]:
+    """The hinge when the part turns clearly beyond its rotation noise and its angle explains the positions no
+    worse than a line (POS_WORSE x, plus POS_FLOOR of the viewing distance); else the slide."""
+    dist = float(np.median(np.linalg.norm(hinge.scale * pv.u, axis=1)))
+    floor = POS_FLOOR * dist
+    hp = float(np.median(hinge.pos_resid[hinge.ok])) if hinge.ok.any() else np.inf
+    sp = float(np.median(slide.pos_resid[slide.ok])) if slide.ok.any() else np.inf
+    noise = hinge.figures["rot_noise_deg"]
+    turns = hinge.figures["turn_deg"] > max(SLIDE_MAX_DEG, TURN_NOISE * noise)
+    explains = hp <= POS_WORSE * sp + floor
+    evidence = {"turn_deg": hinge.figures["turn_deg"], "rot_noise_deg": noise, "turns": bool(turns),
+                "hinge_pos_residual": round(hp, 6), "slide_pos_residual": round(sp, 6),
+                "angle_explains_positions": bool(explains)}
+    return (hinge if turns and explains else slide), evidence
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# states from the displacement, the labels fixing the ends
+# ----------------------------------------------------------------------------------------------------------------
+@dataclass
+class Calibration:
+    """state = (d - d0) / rate; `rate` the displacement per unit state (signed as measured)."""
+
+    d0: float
+    rate: float
+    end_states: tuple[float, float]  # the states of the low and the high end of d
+
+
+def _snap(s: float) -> float:
+    for target in (0.0, 1.0):
+        if abs(s - target) <= SNAP:
+            return target
+    return float(np.clip(s, 0.0, 1.0))
+
+
+def calibrate(d: np.ndarray, ok: np.ndarray, labels: np.ndarray, labelled: np.ndarray) -> Calibration | None:
+    """The displacement's ends (over the trusted frames) get the states a robust line through the labels gives
+    them, snapped to 0 / 1 when near; None when the labels cannot orient the motion (fewer than two distinct
+    labelled states on trusted frames, or the displacement does not vary)."""
+    lab = ok & labelled
+    if lab.sum() < 2 or np.ptp(labels[lab]) < 2 * SNAP or not ok.any():
+        return None
+    lo, hi = ends(d[ok])
+    if hi - lo <= 1e-12:
+        return None
+    slope, icpt = robust_line(d[lab], labels[lab])
+    if slope == 0:
+        return None
+    s_lo, s_hi = _snap(icpt + slope * lo), _snap(icpt + slope * hi)
+    if s_lo == s_hi:  # both ends snapped alike: trust the order the labels give, the span they give
+        s_lo, s_hi = (0.0, 1.0) if slope > 0 else (1.0, 0.0)
+    rate = (hi - lo) / (s_hi - s_lo)
+    return Calibration(lo - s_lo * rate, rate, (s_lo, s_hi))
+
+
+def label_figures(frames: np.ndarray, measured: np.ndarray, labels: np.ndarray, labelled: np.ndarray
+                  ) -> dict[str, Any]:
+    """Each labelled frame's label next to its measured state; the likely mistakes; the agreement."""
+    idx = [i for i in np.flatnonzero(labelled) if np.isfinite(measured[i])]
+    check = [[int(frames[i]), round(float(labels[i]), 3), round(float(measured[i]), 3)] for i in idx]
+    diff = np.array([abs(m - lab) for _, lab, m in check]) if check else np.zeros(0)
+    flagged = [row for row, e in zip(check, diff) if e > FLAG_TOL]
+    return {"label_check": check, "flagged_labels": flagged,
+            "state_rmse_from_pose": round(float(np.sqrt(np.mean(diff ** 2))), 4) if len(diff) else float("inf"),
+            "label_median_error": round(float(np.median(diff)), 4) if len(diff) else float("inf")}
+
+
+def fit_motion(pv: PartViews, states: np.ndarray, known: np.ndarray, labelled: np.ndarray | None = None
+               ) -> tuple[Articulation, dict[str, Any]]:
+    """A hinge or a slide from the part's per-frame poses; states, known (F,) of the registered frames (labels and
+    what `known_states` filled in); `labelled` (F,) the frames a person labelled (default: known).
+
+    Returns the motion and what it measured: kind evidence, per-frame measured states (`frame_states`), label
+    check, flagged labels, `accepted` (enough trusted frames and the labels mostly agree) and its `reason`."""
+    labelled = known if labelled is None else labelled
+    hinge, slide = fit_hinge(pv), fit_slide(pv)
+    fit, evidence = choose(hinge, slide, pv)
+    extra: dict[str, Any] = {"registered": int(len(pv.frames)), **hinge.figures, **slide.figures, **evidence,
+                             "kind_from": "geometry"}
+    cal = calibrate(fit.d, fit.ok, states, known)
+    axis, d, point = fit.axis.copy(), fit.d.copy(), fit.point.copy()
+    if cal is None:
+        extra.update(accepted=False, reason="the labels do not orient the motion (label both ends)",
+                     scale=fit.scale, state_rmse_from_pose=float("inf"), label_median_error=float("inf"),
+                     label_check=[], flagged_labels=[])
+        return Articulation(fit.kind, axis, point, 0.0, extra), extra
+    rate, d0 = cal.rate, cal.d0
+    if rate < 0:  # the axis points the way the state grows
+        axis, d, rate, d0 = -axis, -d, -rate, -d0
+    measured = np.where(fit.ok, (d - d0) / rate, np.nan)
+    extra.update(label_figures(pv.frames, measured, states, labelled))
+    extra.update(scale=float(fit.scale), end_states=list(cal.end_states),
+                 frame_states=[[int(f), round(float(m), 4)] for f, m in zip(pv.frames, measured) if np.isfinite(m)],
+                 pos_residual=round(float(np.median(fit.pos_resid[fit.ok])), 6))
+    origin = point if fit.kind == "hinge" else point + d0 * axis  # a slide's origin: where it is at state 0
+    extra.update(_acceptance(fit, extra, rate))
+    return Articulation(fit.kind, axis, origin, float(rate), extra), extra
+
+
+def _acceptance(fit: Fit, extra: dict[str, Any], rate: float) -> dict[str, Any]:
+    """accepted / reason: the motion is used unless the part barely moves or most labels disagree with it."""
+    if fit.kind == "slide":
+        noise = float(np.median(fit.pos_resid[fit.ok]))
+        if rate < MIN_MOVE * max(noise, 1e-12):
+            return {"accepted": False, "reason": f"it barely moves (range {rate:.3g} against position noise "
+                                                 f"{noise:.3g})"}
+    n = len(extra["label_check"])
+    if extra["label_median_error"] > LABEL_TOL or len(extra["flagged_labels"]) > MAX_FLAGGED * n:
+        return {"accepted": False, "reason": f"{len(extra['flagged_labels'])} of {n} labels disagree with the "
+                                             f"measured states by more than {FLAG_TOL}"}
+    return {"accepted": True, "reason": ""}

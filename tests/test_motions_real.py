@@ -1,0 +1,247 @@
+"""Motions on real parts: the kind from the geometry, every frame's state from the displacement, labels as noisy
+orientation only (a wrong one is named), the part's masks less the transient layer, bounded frame counts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from interreal.dataset import Articulation
+from interreal.motion_fit import FLAG_TOL, PartViews, fit_motion
+
+
+def _capture(motion: Articulation, states: np.ndarray, seed: int, rot_deg: float, pos_noise: float,
+             scale: float = 0.6) -> PartViews:
+    """What `part_views` gives for a part moving by `motion` filmed by a camera walking an arc around it: each
+    frame's pose with `rot_deg` of rotation noise and `pos_noise` (world units) of position noise."""
+    rng = np.random.default_rng(seed)
+    r0 = Rotation.random(random_state=seed).as_matrix()
+    b0 = rng.normal(size=3) * 0.3
+    rot, u, centre = [], [], []
+    for i, s in enumerate(states):
+        r, t = motion.pose(float(s))
+        noise = Rotation.from_rotvec(np.radians(rot_deg) * rng.normal(size=3)).as_matrix()
+        c = np.array([2.5 * np.cos(i / 25), 0.8 + 0.1 * np.sin(i / 9), 2.5 * np.sin(i / 25)])
+        rot.append(noise @ r @ r0)
+        u.append((r @ b0 + t + pos_noise * rng.normal(size=3) - c) / scale)
+        centre.append(c)
+    return PartViews(np.arange(len(states)), np.asarray(rot), np.asarray(u), np.asarray(centre))
+
+
+def _states(n: int = 90) -> np.ndarray:
+    """Closed, opened, held open, closed half way, held: a part resting at its ends for a while."""
+    return np.concatenate([np.zeros(15), np.linspace(0, 1, 20), np.ones(20), np.linspace(1, 0.5, 15),
+                           np.full(n - 70, 0.5)])
+
+
+def _labels(truth: np.ndarray, every: int, noise: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Eyeballed labels on every `every`-th frame, off by up to +-`noise` (kept in [0, 1])."""
+    rng = np.random.default_rng(seed)
+    known = np.zeros(len(truth), bool)
+    known[::every] = True
+    labels = np.where(known, np.clip(truth + rng.uniform(-noise, noise, len(truth)), 0, 1), 0.0)
+    return labels, known
+
+
+HINGE = Articulation("hinge", np.array([0.05, 0.99, 0.1]) / np.linalg.norm([0.05, 0.99, 0.1]),
+                     np.array([0.3, 0.0, -0.2]), np.radians(50))
+SLIDE = Articulation("slide", np.array([0.7, 0.0, 0.7]) / np.sqrt(0.98), np.zeros(3), 0.25)
+
+
+@pytest.mark.parametrize("truth", [HINGE, SLIDE], ids=["hinge", "slide"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_kind_from_geometry_and_states_from_displacement_with_noisy_labels(truth, seed):
+    """Noisy poses (0.7 deg, 4 mm) and labels off by up to 0.15: the right kind, accepted, every registered frame's
+    measured state within 0.05 of the truth, the motion's size within a few per cent."""
+    states = _states()
+    pv = _capture(truth, states, seed, rot_deg=0.7, pos_noise=0.004)
+    labels, known = _labels(states, every=8, noise=0.15, seed=seed)
+    fit, extra = fit_motion(pv, labels, known)
+    assert fit.kind == truth.kind and extra["kind_from"] == "geometry", extra
+    assert extra["accepted"], extra["reason"]
+    assert not extra["flagged_labels"], extra["flagged_labels"]
+    measured = dict(extra["frame_states"])
+    err = np.array([abs(measured[f] - states[f]) for f in measured])
+    assert len(measured) >= 0.9 * len(states) and err.max() < 0.05, err.max()
+    assert float(fit.axis @ truth.axis) > np.cos(np.radians(3))
+    assert abs(fit.range - truth.range) < 0.04 * truth.range
+    assert abs(extra["scale"] - 0.6) < 0.03
+
+
+def test_a_small_turn_is_a_hinge_and_rotation_noise_alone_is_not():
+    """15 degrees with 0.5 deg of noise turns clearly; a slide with 1 deg of noise does not."""
+    small = Articulation("hinge", HINGE.axis, HINGE.origin, np.radians(15))
+    states = _states()
+    labels, known = _labels(states, every=6, noise=0.1, seed=3)
+    fit, extra = fit_motion(_capture(small, states, 3, rot_deg=0.5, pos_noise=0.002), labels, known)
+    assert fit.kind == "hinge" and extra["turns"], extra
+    fit, extra = fit_motion(_capture(SLIDE, states, 3, rot_deg=1.0, pos_noise=0.002), labels, known)
+    assert fit.kind == "slide" and not extra["turns"], extra
+
+
+@pytest.mark.parametrize("truth", [HINGE, SLIDE], ids=["hinge", "slide"])
+def test_a_wrong_label_is_flagged_and_the_motion_kept(truth):
+    """A label that says open where the part is closed is named as a likely mistake (in the fit and, through
+    `frame_state_rows`, next to its frame), and does not move the measured states."""
+    from interreal.motions import frame_state_rows
+
+    states = _states()
+    labels, known = _labels(states, every=8, noise=0.1, seed=5)
+    labels[8] = 1.0  # truly closed (state 0)
+    fit, extra = fit_motion(_capture(truth, states, 5, rot_deg=0.5, pos_noise=0.003), labels, known)
+    assert extra["accepted"], extra["reason"]
+    assert [row[0] for row in extra["flagged_labels"]] == [8], extra["flagged_labels"]
+    f, lab, meas = extra["flagged_labels"][0]
+    assert lab == 1.0 and abs(meas) < 0.05 and abs(meas - lab) > FLAG_TOL
+    rows = frame_state_rows(extra, [f"{i:05d}" for i in range(len(states))], labels, known)
+    row8 = next(r for r in rows if r[0] == "00008")
+    assert row8[2] == 1.0 and row8[3] is True
+    assert sum(r[3] for r in rows) == 1
+
+
+def test_labels_that_mostly_disagree_refuse_the_motion_and_one_sided_labels_cannot_orient_it():
+    states = _states()
+    pv = _capture(HINGE, states, 7, rot_deg=0.5, pos_noise=0.003)
+    labels, known = _labels(states, every=8, noise=0.0, seed=7)
+    rng = np.random.default_rng(7)
+    shuffled = labels.copy()
+    shuffled[known] = rng.permutation(labels[known])  # labels of other frames
+    fit, extra = fit_motion(pv, shuffled, known)
+    assert not extra["accepted"] and "disagree" in extra["reason"], extra
+    one_sided = np.where(known, 0.0, 0.0)
+    fit, extra = fit_motion(pv, one_sided, known)
+    assert not extra["accepted"] and "orient" in extra["reason"]
+
+
+def test_states_follow_the_labels_direction_and_partial_ends():
+    """Labels that say the part starts open fix the direction; a capture that only opens half way (labels 0..0.5)
+    keeps its half range instead of being stretched to 1."""
+    states = _states()
+    pv = _capture(SLIDE, states, 9, rot_deg=0.3, pos_noise=0.002)
+    labels, known = _labels(1 - states, every=6, noise=0.05, seed=9)
+    fit, extra = fit_motion(pv, labels, known)
+    measured = dict(extra["frame_states"])
+    assert max(abs(measured[f] - (1 - states[f])) for f in measured) < 0.05
+    assert float(fit.axis @ SLIDE.axis) < -0.99  # the state grows the other way
+    half = Articulation("slide", SLIDE.axis, np.zeros(3), 0.5)  # 0.5 world units at state 1 ...
+    pv = _capture(half, 0.5 * states, 9, rot_deg=0.3, pos_noise=0.002)  # ... of which half is filmed
+    labels, known = _labels(0.5 * states, every=6, noise=0.03, seed=9)
+    fit, extra = fit_motion(pv, labels, known)
+    assert extra["end_states"] == [0.0, pytest.approx(0.5, abs=0.05)] and abs(fit.range - 0.5) < 0.05
+
+
+def test_part_masks_leave_out_transient_pixels_and_cap_the_frames(tmp_path):
+    """The transient layer's pixels (a hand on the lid) never reach the part's SfM masks; at most `max_frames`
+    frames are kept, spread evenly, with every labelled frame among them."""
+    import cv2
+
+    from interreal.motions import MotionConfig, part_masks
+
+    h, w = 40, 50
+    mask = np.zeros((h, w, 2), bool)
+    mask[5:35, 5:45, 0] = True
+    mask[..., 1] = ~mask[..., 0]
+    frames = [SimpleNamespace(fid=f"{i:05d}", file_path=f"images/frame_{i:05d}.png") for i in range(30)]
+    ds = SimpleNamespace(frames=frames, root=tmp_path, load_mask=lambda f: mask)
+    hand = np.zeros((h, w), bool)
+    hand[10:20, 10:20] = True
+    cfg = MotionConfig(erode=0, min_pixels=100, max_frames=10)
+    names = part_masks(ds, 0, tmp_path / "m", cfg, keep={7, 13},
+                       exclude=lambda ds_, f, hw, c: hand if f.fid == "00007" else None)
+    idx = [int(Path(n).stem.split("_")[1]) for n in names]
+    assert len(idx) <= 12 and {0, 7, 13, 29} <= set(idx)
+    out = cv2.imread(str(tmp_path / "m" / "frame_00007.png.png"), cv2.IMREAD_GRAYSCALE)
+    assert out[15, 15] == 0 and out[30, 40] == 255
+    other = cv2.imread(str(tmp_path / "m" / "frame_00000.png.png"), cv2.IMREAD_GRAYSCALE)
+    assert other[15, 15] == 255
+
+
+def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """c2w (4x4, OpenCV axes: x right, y down, z forward) of a camera at `eye` looking at `target` (world +y up)."""
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, np.array([0.0, 1.0, 0.0]))
+    x /= np.linalg.norm(x)
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
+    c2w[:3, 3] = eye
+    return c2w
+
+
+def test_pnp_route_measures_a_hinge_from_images_with_known_cameras():
+    """The route for a part its own SfM cannot follow: a textured lid (30 frames, 320x240) turning 40 degrees
+    while the camera walks; triangulated once at rest, located by PnP in every frame -> the hinge's axis within
+    2 deg and its range within 5 %."""
+    import cv2
+
+    from interreal.motion_pnp import pnp_views, reference_frames
+
+    rng = np.random.default_rng(0)
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (160, 240)).astype(np.float32), (0, 0), 2.0)
+    tex = cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    k = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    truth = Articulation("hinge", np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.0]), np.radians(40))
+    e1, e2, p0 = np.array([1.0, 0, 0]) / 240, np.array([0, 1.0, 0]) * 0.66 / 160, np.array([-0.5, 0.0, 0.0])
+    states = np.concatenate([np.zeros(8), np.linspace(0, 1, 12), np.ones(10)])
+    grays, masks, c2ws = {}, {}, {}
+    for i, s in enumerate(states):
+        r, t = truth.pose(float(s))
+        ang = -0.5 + i / 40
+        c2w = _look_at(np.array([2.2 * np.sin(ang), 0.9, -2.2 * np.cos(ang)]), np.array([0.0, 0.33, 0.0]))
+        w2c = np.linalg.inv(c2w)
+        h = k @ np.stack([w2c[:3, :3] @ r @ e1, w2c[:3, :3] @ r @ e2,
+                          w2c[:3, :3] @ (r @ p0 + t) + w2c[:3, 3]], 1)
+        grays[i] = cv2.warpPerspective(tex, h, (320, 240))
+        masks[i] = cv2.erode(cv2.warpPerspective(np.full_like(tex, 255), h, (320, 240)), np.ones((7, 7))) > 0
+        c2ws[i] = c2w
+    known = states == 0
+    refs = reference_frames(list(range(len(states))), states, known, known)
+    assert refs and all(states[r] == 0 for r in refs[0])  # the frames labelled alike come first
+    pv, fig = pnp_views(grays, masks, c2ws, k, np.zeros(5), refs, most=800)
+    assert pv is not None and fig["located"] >= 27, fig
+    labels = np.where(np.isin(np.arange(30), [0, 10, 25]), states, 0.0)
+    fit, extra = fit_motion(pv, labels, np.isin(np.arange(30), [0, 10, 25]))
+    assert fit.kind == "hinge" and extra["accepted"], extra
+    assert abs(float(fit.axis @ truth.axis)) > np.cos(np.radians(2))
+    assert abs(fit.range - truth.range) < 0.05 * truth.range
+    assert abs(extra["scale"] - 1.0) < 0.05  # world units: the reference was triangulated with the known cameras
+
+
+def test_flagged_labels_reach_the_annotate_apps_suggested_frames(tmp_path):
+    """The motions report's likely mistakes are listed first among the frames the annotate app suggests."""
+    import cv2
+
+    from interreal.annotate.store import DatasetStore
+    from interreal.motions import flagged_labels
+    from interreal.report import StageReport
+
+    (tmp_path / "images").mkdir()
+    for i in (0, 4, 8):
+        cv2.imwrite(str(tmp_path / "images" / f"frame_{i:05d}.png"), np.zeros((8, 8, 3), np.uint8))
+    with StageReport(tmp_path, "motions", inputs={}, settings={}) as rep:
+        rep.warn("'lid': 1 of 5 labels disagree", cause="label-disagrees", object="lid",
+                 flagged=[["00004", 0.9, 0.51]])
+    assert flagged_labels(tmp_path) == [{"fid": "00004", "object": "lid", "label": 0.9, "measured": 0.51}]
+    first = DatasetStore(tmp_path).suggested()[0]
+    assert first["fid"] == "00004" and "0.90" in first["reason"] and "0.51" in first["reason"]
+
+
+def test_laptop_fixtures_load_as_keyframes_and_labels():
+    """The real-capture benchmark's annotations (recipes/bench_real.py) stay readable: 5 LabelMe keyframes of the
+    lid with the hand / person painted as the ignore class, and 5 lid labels in [0, 1] on keyframe frames."""
+    import yaml
+
+    from interreal.masks.keyframes import load_keyframes
+    from interreal.transients import IGNORE
+
+    fix = Path(__file__).parent / "fixtures" / "laptop"
+    kf = load_keyframes(fix / "keyframes", [f"{i:05d}" for i in range(240)], (1072, 608), {})
+    assert kf.names == ["laptop lid"] and sorted(kf.masks) == ["00000", "00070", "00130", "00190", "00230"]
+    for m in kf.masks.values():
+        assert 0.03 < float((m == 1).mean()) < 0.2 and (m == IGNORE).any()  # the lid (1; 0 background), a hand
+    labels = yaml.safe_load((fix / "labels.yaml").read_text())
+    assert len(labels) == 5 and all(0.0 <= v["laptop lid"] <= 1.0 for v in labels.values())

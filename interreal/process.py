@@ -7,18 +7,19 @@ the annotations are forced into the selection so every annotated frame survives.
 
 from __future__ import annotations
 
-import importlib
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from . import provenance
 from .conventions import frame_index
-from .errors import InputError, StageError
+from .errors import InputError
 from .frames import FramesConfig, extract_frames, frames_options
 from .masks.config import MasksConfig
+from .motions import estimate_motions
 from .options import add_flags, options_of, values_from_args
-from .labels import add_unit_arguments, parse_range, read_label_file
+from .labels import add_unit_arguments, import_labels, parse_range, read_label_file
+from .masks import propagate
 from .report import StageReport, read_report, warning_lines
 from .sfm import add_sfm_options, estimate_poses, sfm_options, summary_lines
 
@@ -53,20 +54,6 @@ def label_indices(labels_file: Path) -> list[int]:
     return sorted(set(out))
 
 
-def _stage_fn(module: str, name: str, flag: str) -> Callable[..., Any]:
-    """Import another engineer's stage lazily, so `process` works without it until the flag is used."""
-    try:
-        mod = importlib.import_module(module)
-    except ModuleNotFoundError as exc:
-        if exc.name == module:
-            raise StageError(f"{flag} needs {module}, which is not in this build; run `interreal process` without "
-                             f"{flag}, or update the toolkit") from exc
-        raise
-    fn = getattr(mod, name, None)
-    if fn is None:
-        raise StageError(f"{flag} needs {module}.{name}, which this build does not have")
-    return fn
-
 
 def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None = None,
             labels: str | Path | None = None, motions: bool = True, degrees: Any = None, cm: Any = None,
@@ -87,10 +74,7 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
         keep |= set(keyframe_indices(Path(keyframes)))
     if labels is not None:
         keep |= set(label_indices(Path(labels)))
-    # resolve optional stages before any work, so a missing module fails in a second, not after SfM
-    propagate = _stage_fn("interreal.masks", "propagate", "--keyframes") if keyframes is not None else None
-    import_labels = _stage_fn("interreal.labels", "import_labels", "--labels") if labels is not None else None
-    if import_labels is not None and (degrees is not None or cm is not None):
+    if labels is not None and (degrees is not None or cm is not None):
         parse_range(degrees, "degrees"), parse_range(cm, "cm")  # a malformed range fails now, not after SfM
     settings = {"keyframes": str(keyframes) if keyframes else None, "labels": str(labels) if labels else None,
                 **frames_opts, "motions": motions, "degrees": degrees, "cm": cm, **masks_opts, **sfm}
@@ -103,7 +87,6 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
         # a stage not asked for but already in the dataset runs again when its inputs changed (new frames, ...)
         kf_dir = Path(keyframes) if keyframes is not None else _stale_keyframes(ds)
         if kf_dir is not None:
-            propagate = propagate or _stage_fn("interreal.masks", "propagate", "--keyframes")
             with rep.step("masks") as st:
                 st["keyframes"] = str(kf_dir)
                 propagate(ds, kf_dir, **masks_opts)
@@ -111,7 +94,7 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
         with rep.step("poses"):
             fig = estimate_poses(ds, **sfm)
         _collect_warnings(rep, ds, "poses")
-        if import_labels is not None:
+        if labels is not None:
             # labels of another capture (the frames now come from another video) are replaced, not merged
             replace = any(s.stage == "labels" and "capture" in s.reasons for s in provenance.stale_stages(ds))
             with rep.step("labels") as st:
@@ -120,8 +103,7 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
                 import_labels(ds, Path(labels), **units, **({"replace": True} if replace else {}))
             _collect_warnings(rep, ds, "labels")
         had_motions = read_report(ds, "motions") is not None
-        if motions and ((kf_dir is not None and import_labels is not None) or had_motions):
-            estimate_motions = _stage_fn("interreal.motions", "estimate_motions", "--motions")
+        if motions and ((kf_dir is not None and labels is not None) or had_motions):
             with rep.step("motions") as st:
                 st.update(estimate_motions(ds))
             _collect_warnings(rep, ds, "motions")

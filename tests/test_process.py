@@ -1,19 +1,16 @@
-"""`interreal process`: stage order, annotated frames forced into the selection, missing stages, end to end."""
+"""`interreal process`: stage order, annotated frames forced into the selection, end to end."""
 
 from __future__ import annotations
 
 import json
-import sys
-import types
 
 import pytest
 import yaml
 
 from interreal import cli
 from interreal import process as proc
-from interreal.errors import InputError, StageError
+from interreal.errors import InputError
 
-from test_ingest import textured, write_video
 from test_sfm import errors, gt
 
 
@@ -40,15 +37,9 @@ def test_stages_run_in_order_with_annotated_frames_kept(tmp_path, monkeypatch):
     monkeypatch.setattr(proc, "extract_frames", lambda src, ds, **kw: calls.append(("frames", kw)) or [1, 2, 3])
     monkeypatch.setattr(proc, "estimate_poses", lambda ds, **kw: calls.append(("poses", kw)) or
                         {"registered": 3, "total": 3})
-    masks = types.ModuleType("interreal.masks")
-    masks.propagate = lambda ds, kdir, **kw: calls.append(("masks", kdir.name))
-    labels = types.ModuleType("interreal.labels")
-    labels.import_labels = lambda ds, f, **kw: calls.append(("labels", f.name))
-    monkeypatch.setitem(sys.modules, "interreal.masks", masks)
-    monkeypatch.setitem(sys.modules, "interreal.labels", labels)
-    motions = types.ModuleType("interreal.motions")
-    motions.estimate_motions = lambda ds, **kw: calls.append(("motions", kw)) or {"measured": 1}
-    monkeypatch.setitem(sys.modules, "interreal.motions", motions)
+    monkeypatch.setattr(proc, "propagate", lambda ds, kdir, **kw: calls.append(("masks", kdir.name)))
+    monkeypatch.setattr(proc, "import_labels", lambda ds, f, **kw: calls.append(("labels", f.name)))
+    monkeypatch.setattr(proc, "estimate_motions", lambda ds, **kw: calls.append(("motions", kw)) or {"measured": 1})
     kf = tmp_path / "kf"
     kf.mkdir()
     (kf / "00012.png").write_text("x")
@@ -64,16 +55,6 @@ def test_stages_run_in_order_with_annotated_frames_kept(tmp_path, monkeypatch):
     proc.process("in.mp4", tmp_path / "ds", keyframes=kf, labels=states, motions=False)
     assert [c[0] for c in calls] == ["frames", "masks", "poses", "labels"]
 
-
-def test_missing_stage_module_fails_before_any_work(tmp_path, monkeypatch):
-    monkeypatch.setitem(sys.modules, "interreal.masks", None)  # as if masks were not in this build
-    kf = tmp_path / "kf"
-    kf.mkdir()
-    (kf / "00000.png").write_text("x")
-    video = write_video(tmp_path / "v.mp4", [textured(i) for i in range(6)])
-    with pytest.raises(StageError, match="--keyframes needs interreal.masks"):
-        proc.process(video, tmp_path / "ds", keyframes=kf)
-    assert not (tmp_path / "ds" / "images").exists()
 
 
 def test_bad_input_exits_non_zero(tmp_path):

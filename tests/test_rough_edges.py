@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import sys
-import types
 
 import pytest
 import yaml
@@ -37,12 +35,7 @@ def _fake_stages(monkeypatch, calls):
 
     monkeypatch.setattr(proc, "extract_frames", frames)
     monkeypatch.setattr(proc, "estimate_poses", poses)
-    labels = types.ModuleType("interreal.labels")
-    labels.import_labels = import_labels
-    from interreal.labels import add_unit_arguments, parse_range
-
-    labels.parse_range, labels.add_unit_arguments = parse_range, add_unit_arguments
-    monkeypatch.setitem(sys.modules, "interreal.labels", labels)
+    monkeypatch.setattr(proc, "import_labels", import_labels)
 
 
 def test_process_collects_stage_warnings_prints_summaries_and_passes_units(tmp_path, monkeypatch, capsys):

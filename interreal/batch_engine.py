@@ -28,7 +28,8 @@ from typing import Any, Callable, Iterator
 
 from .errors import InputError, MissingExtraError
 
-THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+               "OPENCV_FOR_THREADS_NUM")  # OMP_NUM_THREADS also bounds pycolmap (interreal.sfm.colmap.threads)
 
 
 @dataclass

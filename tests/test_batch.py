@@ -224,3 +224,16 @@ def test_batch_corrupt_capture_leaves_others_finished_and_resumes(captures, tmp_
     assert rows["cap0"]["registered"] == summary["captures"][0]["registered"]  # the table still has its figures
     assert {n: (out / n / "batch.json").stat().st_mtime_ns for n in ("cap0", "cap1")} == stamps
     assert "2 finished earlier, 1 to run" in capsys.readouterr().out
+
+
+def test_a_workers_cpu_budget_bounds_pycolmap(monkeypatch):
+    """A batch worker's OMP_NUM_THREADS (its CPU budget) is what pycolmap gets for "all cores" (-1); an explicit
+    count wins; without the variable pycolmap keeps every core."""
+    from interreal.batch_engine import THREAD_VARS
+    from interreal.sfm.colmap import threads
+
+    assert "OMP_NUM_THREADS" in THREAD_VARS
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert threads(-1) == 1 and threads(3) == 3
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert threads(-1) == -1

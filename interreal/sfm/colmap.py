@@ -68,6 +68,17 @@ def _chunks(items: list, size: int | None) -> list[list]:
     return [items[k:k + size] for k in range(0, len(items), size)]
 
 
+def threads(n: int) -> int:
+    """pycolmap's thread count for a setting `n`: -1 (all cores) becomes OMP_NUM_THREADS where that is set, so a
+    batch worker given a CPU budget (`interreal batch`) keeps to it instead of taking every core."""
+    if n > 0:
+        return n
+    try:
+        return max(1, int(os.environ["OMP_NUM_THREADS"]))
+    except (KeyError, ValueError):
+        return -1
+
+
 @dataclass(frozen=True)
 class Extraction:
     """SIFT settings of one database: one shared camera of `camera_model` (`camera_params`: its fixed intrinsics
@@ -84,7 +95,8 @@ def extract_features(pc, db: Path, image_dir: Path, groups: list[tuple[int, list
                      mask_dir: Path | None = None, log: NativeLog | None = None, chunk: int | None = 16) -> None:
     """SIFT into a fresh database: each (first octave, image names) group at its octave, in chunks of `chunk`
     images (for the progress bar; None = one call); every chunk reuses the one shared camera."""
-    ext = pc.FeatureExtractionOptions(num_threads=ex.num_threads, use_gpu=False, max_image_size=ex.max_image_size)
+    ext = pc.FeatureExtractionOptions(num_threads=threads(ex.num_threads), use_gpu=False,
+                                      max_image_size=ex.max_image_size)
     ext.sift.max_num_features = ex.max_features
     db.unlink(missing_ok=True)
     bar = _bar(log, sum(len(g) for _, g in groups), "features")
@@ -136,13 +148,13 @@ def match_loops(pc, db: Path, tree: Path, queries: list[str], listing: Path, see
         raise StageError("loop detection needs a local vocabulary tree (internal error: tree not built)")
     listing.write_text("".join(f"{n}\n" for n in queries))
     popt = pc.VocabTreePairingOptions(num_images=num_images, vocab_tree_path=str(tree),
-                                      match_list_path=str(listing), num_threads=num_threads)
+                                      match_list_path=str(listing), num_threads=threads(num_threads))
     pc.match_vocabtree(str(db), matching_options=_matching(pc, num_threads), pairing_options=popt,
                        verification_options=_verification(pc, seed), device=pc.Device.cpu)
 
 
 def _matching(pc, num_threads: int):
-    return pc.FeatureMatchingOptions(num_threads=num_threads, use_gpu=False)
+    return pc.FeatureMatchingOptions(num_threads=threads(num_threads), use_gpu=False)
 
 
 def _verification(pc, seed: int):
@@ -168,7 +180,7 @@ def build_vocab_tree(pycolmap, db_path: Path, out: Path, max_descriptors: int = 
     fd = pycolmap.FeatureDescriptorsFloat(pycolmap.FeatureExtractorType.SIFT, desc)
     vi = pycolmap.VisualIndex.create(128, 64)
     vi.build(pycolmap.VisualIndex.BuildOptions(num_visual_words=words, num_iterations=10, num_rounds=1,
-                                               num_threads=-1), fd)
+                                               num_threads=threads(-1)), fd)
     tmp = out.with_suffix(".tmp")
     vi.write(str(tmp))
     tmp.replace(out)
@@ -184,7 +196,7 @@ def fresh_model_dir(pc, out: Path, seed: int) -> None:
 
 def incremental_options(pc, num_threads: int, seed: int, fixed_intrinsics: bool = False):
     """Incremental mapper options (models of >= 3 images); `fixed_intrinsics`: the camera is known, BA keeps it."""
-    opt = pc.IncrementalPipelineOptions(num_threads=num_threads, random_seed=seed, min_model_size=3)
+    opt = pc.IncrementalPipelineOptions(num_threads=threads(num_threads), random_seed=seed, min_model_size=3)
     if fixed_intrinsics:
         opt.ba_refine_focal_length = opt.ba_refine_principal_point = opt.ba_refine_extra_params = False
     return opt
@@ -199,7 +211,7 @@ def incremental_map(pc, db: Path, image_dir: Path, out: Path, opt, input_path: P
 
 def global_map(pc, db: Path, image_dir: Path, out: Path, num_threads: int, seed: int) -> dict[int, Any]:
     """Model id -> reconstruction from the global (GLOMAP-style) mapper, on the CPU."""
-    gopt = pc.GlobalPipelineOptions(num_threads=num_threads, random_seed=seed)
+    gopt = pc.GlobalPipelineOptions(num_threads=threads(num_threads), random_seed=seed)
     gopt.mapper.global_positioning.use_gpu = False
     gopt.mapper.bundle_adjustment.ceres.use_gpu = False
     return dict(pc.global_mapping(str(db), str(image_dir), str(out), options=gopt))
@@ -213,7 +225,7 @@ def bundle_adjust(pc, rec, principal_point: bool, loss: str, loss_scale: float, 
                                      refine_extra_params=True, print_summary=False)
     opt.ceres.loss_function_type = getattr(pc.LossFunctionType, loss.upper())
     opt.ceres.loss_function_scale = loss_scale
-    opt.ceres.solver_options.num_threads = num_threads
+    opt.ceres.solver_options.num_threads = threads(num_threads)
     opt.ceres.solver_options.function_tolerance = tolerance
     pc.bundle_adjustment(rec, opt)
     errs = np.fromiter((p.error for p in rec.points3D.values()), dtype=np.float64)

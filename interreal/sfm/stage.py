@@ -90,7 +90,7 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
             with rep.step("undistort"), ws.log():
                 und = ds / UNDISTORTED_DIR
                 shutil.rmtree(und, ignore_errors=True)
-                ws.pc.undistort_images(str(und), str(final), str(ws.images), num_threads=cfg.num_threads)
+                ws.pc.undistort_images(str(und), str(final), str(ws.images), num_threads=colmap.threads(cfg.num_threads))
         with rep.step("export") as st:
             out = export(ds, rec, cfg)
             st.update(frames=out["frames"])

@@ -26,15 +26,14 @@ class VideoWriter:
         self.stream = self.container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
         self.stream.width, self.stream.height = self.size
         self.stream.pix_fmt = "yuv420p"
-        # one encoder thread: x264's frame threads made the same frames encode differently run to run (PyAV 18),
-        # so a seeded simulated capture was not the same video twice; it costs about 1 s per 300 VGA frames
-        self.stream.options = {"crf": str(int(crf)), "preset": preset, "threads": "1"}
+        # no macroblock tree: with it this x264 build encoded the same frames differently from run to run (any
+        # thread count), so a seeded simulated capture was not the same video twice
+        self.stream.options = {"crf": str(int(crf)), "preset": preset, "x264-params": "no-mbtree=1"}
         self._pts = 0
 
     def write(self, rgb: np.ndarray) -> None:
         w, h = self.size
         frame = self._av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb[:h, :w]), format="rgb24")
-        frame = frame.reformat(format="yuv420p")
         frame.pts, self._pts = self._pts, self._pts + 1
         for pkt in self.stream.encode(frame):
             self.container.mux(pkt)

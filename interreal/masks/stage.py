@@ -277,18 +277,20 @@ class _Cues:
 def _occluded_by_transients(ds: Path, fids: list[str], hl: H.Health, n_obj: int,
                             share: float = 0.7) -> dict[int, list[tuple[int, int]]]:
     """Lost stretches where a person / hand stands in front of the object: on every frame of the stretch, the
-    object's mask on the nearest frame that shows it is, for at least `share` of its pixels, either still the
-    object or covered by the transient layer. They are occluded, not lost: taken out of the lost state (no warning,
-    no suggested keyframe), their confidence that of the frame the object was seen on. Returns object -> the
+    object's mask on a frame beside the stretch (before or after it: the side the person hid it from; a frame
+    flagged only as jumped still shows the object) is, for at least `share` of its pixels, either still the object
+    or covered by the transient layer. They are occluded, not lost: taken out of the lost state (no warning, no
+    suggested keyframe), their confidence that of the frame the object was seen on. Returns object -> the
     stretches so relabelled."""
     out: dict[int, list[tuple[int, int]]] = {}
+    lost = H.STATES.index("lost")
     for k in range(n_obj):
         kept = []
         for a, b in hl.stretches["lost"][k]:
-            seen = [i for i in (a - 1, b + 1) if 0 <= i < len(fids) and hl.state[i, k] == 0]
-            ref = min(seen, key=lambda i: min(abs(i - a), abs(i - b))) if seen else None
-            covered = _covered(ds, fids, ref, range(a, b + 1), k) if ref is not None else 0.0
-            if covered >= share:
+            seen = [i for i in (a - 1, b + 1) if 0 <= i < len(fids) and hl.state[i, k] != lost]
+            cover = {i: _covered(ds, fids, i, range(a, b + 1), k) for i in seen}
+            ref = max(cover, key=cover.__getitem__) if cover else None
+            if ref is not None and cover[ref] >= share:
                 hl.state[a:b + 1, k] = 0
                 hl.predicted[a:b + 1, k] = hl.predicted[ref, k]
                 out.setdefault(k, []).append((a, b))

@@ -535,7 +535,7 @@ def test_masks_propagated_again_make_poses_and_motions_stale_and_process_reruns_
     new_argv[new_argv.index(str(root / "ds"))] = str(ds)
     reports = {s: json.loads((ds / "reports" / f"{s}.json").read_text()) for s in ("frames", "masks", "motions")}
     assert cli(new_argv) == 0
-    assert D.validate(ds).ok and not P.stale_stages(ds)
+    assert D.validate(ds).ok and not P.stale_stages(ds), (D.format_problems(D.validate(ds)), P.stale_stages(ds))
     steps = json.loads((ds / "reports" / "poses.json").read_text())["steps"]
     assert steps["features"]["reused"] is False  # poses really ran again ...
     after = {s: json.loads((ds / "reports" / f"{s}.json").read_text()) for s in ("frames", "masks", "motions")}

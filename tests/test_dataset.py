@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -189,6 +190,17 @@ def test_label_bad_value(tiny_dataset, value):
 def test_label_unknown_frame(tiny_dataset):
     (tiny_dataset / "key_frame_value.yaml").write_text(yaml.safe_dump({"frame_00099": {"door": 0.5}}))
     assert "label-unknown-frame" in kinds(tiny_dataset)
+
+
+def test_label_on_a_frame_sfm_left_out_is_a_warning(tiny_dataset):
+    """A re-run of `poses` may drop a labelled frame: the dataset stays usable, the label unused, the user told."""
+    image = sorted((tiny_dataset / "images").iterdir())[0]
+    shutil.copy(image, image.with_name("frame_00099" + image.suffix))
+    (tiny_dataset / "key_frame_value.yaml").write_text(yaml.safe_dump({"frame_00099": {"door": 0.5}}))
+    res = D.validate(tiny_dataset)
+    assert res.ok, D.format_problems(res)
+    assert any("frame(s) 99 that have no camera pose" in w for w in res.warnings), res.warnings
+    assert res.summary["labels_per_object"]["door"] == 0  # not counted: training cannot use it
 
 
 def test_interrupted_stage_is_refused(tiny_dataset):

@@ -75,9 +75,13 @@ def validate(root: str | Path, check_masks: bool = True) -> ValidationResult:
     summary["frames"] = len(frames)
     mapping = _validate_mapping(root, add)
     summary["objects"] = [mapping[i] for i in sorted(mapping)] if mapping else []
-    labels = _validate_labels(root, mapping, frames, add)
+    unposed: list[int] = []
+    labels = _validate_labels(root, mapping, frames, add, unposed)
     summary["labels_per_object"] = _labels_per_object(labels, mapping)
     warnings = [m for _, m in label_shortage(summary["labels_per_object"], len(frames))] if frames else []
+    if unposed:
+        warnings.append(f"{LABELS_FILE} labels frame(s) {', '.join(map(str, sorted(unposed)))} that have no camera "
+                        f"pose (SfM did not register them): those labels are not used; label a registered frame instead")
     sizes = _validate_images(root, frames, meta, add, decode=check_masks)
     summary["size"] = sorted({f"{w}x{h}" for (w, h) in sizes.values()})
     _validate_masks(root, frames, mapping, sizes, add, pixels=check_masks)
@@ -234,7 +238,10 @@ def _validate_mapping(root: Path, add) -> dict[int, str]:
     return mapping
 
 
-def _validate_labels(root: Path, mapping: dict[int, str], frames: list[tuple[str, dict]], add) -> dict:
+def _validate_labels(root: Path, mapping: dict[int, str], frames: list[tuple[str, dict]], add,
+                     unposed: list[int]) -> dict:
+    """The labels that training can use. A label on a frame that was extracted but has no pose (SfM did not register
+    it) goes to `unposed`: a warning, not a problem, since a re-run of `poses` may drop a frame it held before."""
     path = root / LABELS_FILE
     ok, raw = _read_checked_yaml(path, add, "no-labels", "set keyframe states with `interreal label DS --set NAME FRAME VALUE`")
     if not ok:
@@ -246,6 +253,7 @@ def _validate_labels(root: Path, mapping: dict[int, str], frames: list[tuple[str
         return {}
     names = set(mapping.values())
     frame_numbers = {int(fid) for fid, _ in frames}
+    extracted = _extracted_frames(root)
     good: dict[str, dict[str, float]] = {}
 
     official = is_official_data(root)
@@ -257,6 +265,9 @@ def _validate_labels(root: Path, mapping: dict[int, str], frames: list[tuple[str
             add("bad-labels", where, "key does not end in a frame number (use frame_00042)")
             continue
         if frames and idx not in frame_numbers:
+            if idx in extracted:  # SfM left it out: the label is not used, and the dataset stays usable
+                unposed.append(idx)
+                continue
             add("label-unknown-frame", where, f"frame {idx} is not in transforms.json")
         if not isinstance(entry, dict):
             add("bad-labels", where, "expected {object name: value}")
@@ -272,6 +283,17 @@ def _validate_labels(root: Path, mapping: dict[int, str], frames: list[tuple[str
                 continue
             good.setdefault(str(key), {})[str(name)] = float(value)
     return good
+
+
+def _extracted_frames(root: Path) -> set[int]:
+    """Frame numbers of the images in DS/images/, posed or not."""
+    out = set()
+    for p in (root / IMAGES_DIR).glob("frame_*") if (root / IMAGES_DIR).is_dir() else ():
+        try:
+            out.add(frame_index(p.stem))
+        except ValueError:
+            continue
+    return out
 
 
 # fewer state labels than these leave a part's states unpinned (bench_train label sweep: state MAE 0.15 at 5 % labels

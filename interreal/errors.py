@@ -16,6 +16,10 @@ class InputError(InterRealError):
     """The user's input (video, images, annotations, options) cannot be used."""
 
 
+class LowParallaxError(InputError):
+    """The capture cannot give poses: the camera turned in place or stood still (no parallax between frames)."""
+
+
 class DatasetError(InterRealError):
     """A dataset folder is missing something or is inconsistent."""
 

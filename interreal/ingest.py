@@ -348,8 +348,10 @@ def open_source(path: str | Path) -> Source:
         raise InputError(f"{path} is a single file that is not a video; put photos or RAW files in a folder "
                          "and pass the folder")
     files = _list_folder(path)
-    # a stray note or sidecar file (notes.txt, .xmp, .json) is left out with a warning; a file that claims to be an
-    # image by its name but is not one is an error (a damaged photo must not silently shift the frame indices)
+    # a stray note or sidecar file (K.txt, notes.txt, .xmp, .json) and hidden files (.DS_Store) are left out with a
+    # warning naming them; a file that claims to be an image by its name but is not one is an error (a damaged photo
+    # must not silently shift the frame indices)
+    hidden = sorted(p for p in path.iterdir() if p.is_file() and p.name.startswith("."))
     stray = [p for p in files if p.suffix.lower() not in RAW_SUFFIXES | IMAGE_SUFFIXES and sniff(p) not in IMAGE_FORMATS]
     files = [p for p in files if p not in stray]
     if not files:
@@ -369,6 +371,6 @@ def open_source(path: str | Path) -> Source:
             raise InputError(f"{path} holds files that are not images: {', '.join(bad[:5])}{more}; remove them "
                              "(supported: JPEG, PNG, TIFF, BMP, WebP by content; RAW by extension)")
         source = ImageFolderSource(path, files)
-    if stray:
-        source.info.extra["skipped"] = [p.name for p in stray]
+    if stray or hidden:
+        source.info.extra["skipped"] = [p.name for p in stray + hidden]
     return source

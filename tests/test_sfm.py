@@ -411,7 +411,8 @@ def test_pose_flags_come_from_the_config_fields():
     flags = {s for a in p._actions for s in a.option_strings} - {"-h", "--help"}
     assert flags == {"--sfm-long-side", "--matcher", "--mapper", "--camera-model", "--max-features", "--key-stride",
                      "--fine-octave-stride", "--principal-point", "--ba-loss", "--orientation", "--refine-tracks",
-                     "--extend-tracks", "--no-masks", "--undistort", "--verbose"}
+                     "--extend-tracks", "--no-masks", "--undistort", "--verbose", "--intrinsics",
+                     "--intrinsics-refine", "--allow-low-parallax"}
     defaults = asdict(SfMConfig())
     opts = sfm_options(p.parse_args([]))
     assert opts == {k: defaults[k] for k in opts} and len(opts) == len(flags)

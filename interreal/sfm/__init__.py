@@ -16,9 +16,12 @@ docs/sfm-measurements.md, from recipes/bench_poses.py):
 - Gravity-like orientation ("vertical"), centred and scaled to max |t| = 1; the transform is recorded.
 - Resumable: features, matches and the final model are reused when their inputs and settings are unchanged.
 
+- Before mapping, a check of seconds (`parallax`) refuses a camera that only turned in place or stood still.
+- Known intrinsics (`--intrinsics K.txt | K.json`, `intrinsics`) are scaled to the images and held by every BA.
+
 Modules: `config` (settings, auto rules, pairs, the retry ladder), `colmap` (the one pycolmap layer, shared with
-`interreal.motions`), `ladder` (the run's workspace, the attempts and the polishing of the kept model), `geometry`,
-`export`, `pose_import` (--poses), `stage` (`estimate_poses`), `cli` (`interreal poses`).
+`interreal.motions`), `ladder` (the run's workspace, the attempts and the polishing of the kept model), `parallax`,
+`intrinsics`, `geometry`, `export`, `pose_import` (--poses), `stage` (`estimate_poses`), `cli` (`interreal poses`).
 """
 
 from .cli import add_arguments, add_sfm_options, main, sfm_options, summary_lines

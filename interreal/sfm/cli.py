@@ -20,7 +20,8 @@ def add_arguments(p) -> None:
     p.epilog = ("examples:\n  interreal poses out/room                       # auto matcher, incremental mapping\n"
                 "  interreal poses out/room --mapper global       # GLOMAP-style global SfM\n"
                 "  interreal poses out/room --matcher exhaustive --camera-model OPENCV\n"
-                "  interreal poses out/room --poses polycam/transforms.json   # skip SfM")
+                "  interreal poses out/room --poses polycam/transforms.json   # skip SfM\n"
+                "  interreal poses out/room --intrinsics K.txt    # known camera (3x3 K as text, or JSON), held fixed")
 
 
 def add_sfm_options(p) -> None:
@@ -40,6 +41,14 @@ def summary_lines(fig: dict[str, Any], ds: Path) -> list[str]:
                 f"{fig['points3D']} points" if "mean_reproj_error_px" in fig else ""),
              f"  camera: {intr.get('w')}x{intr.get('h')} f=({intr.get('fl_x', 0):.1f}, {intr.get('fl_y', 0):.1f}) "
              f"c=({intr.get('cx', 0):.1f}, {intr.get('cy', 0):.1f}) k1={intr.get('k1', 0):.4f}"]
+    given = fig.get("intrinsics_given")
+    if given:
+        lines.append(f"  intrinsics from {given['source']} ({given['note']}), "
+                     + ("held fixed" if given.get("held") else "refined by bundle adjustment"))
+    if fig.get("parallax", {}).get("parallax_deg_max") is not None:
+        px = fig["parallax"]
+        lines.append(f"  parallax before mapping: {px['parallax_deg_max']:.1f} deg (largest of {px['pairs_judged']} "
+                     f"frame pairs; median {px['parallax_deg_median']:.1f} deg; checked in {px['wall_s']:.1f}s)")
     if fig.get("steps"):
         lines.append("  time: " + ", ".join(f"{k} {v:.1f}s" for k, v in fig["steps"].items() if v is not None))
     if len(fig.get("ladder", [])) > 1:

@@ -209,20 +209,26 @@ def incremental_map(pc, db: Path, image_dir: Path, out: Path, opt, input_path: P
     return dict(pc.incremental_mapping(str(db), str(image_dir), str(out), options=opt, next_image_callback=tick, **kw))
 
 
-def global_map(pc, db: Path, image_dir: Path, out: Path, num_threads: int, seed: int) -> dict[int, Any]:
-    """Model id -> reconstruction from the global (GLOMAP-style) mapper, on the CPU."""
+def global_map(pc, db: Path, image_dir: Path, out: Path, num_threads: int, seed: int,
+               fixed_intrinsics: bool = False) -> dict[int, Any]:
+    """Model id -> reconstruction from the global (GLOMAP-style) mapper, on the CPU (`fixed_intrinsics`: the
+    camera is known, its BA keeps it)."""
     gopt = pc.GlobalPipelineOptions(num_threads=threads(num_threads), random_seed=seed)
     gopt.mapper.global_positioning.use_gpu = False
     gopt.mapper.bundle_adjustment.ceres.use_gpu = False
+    if fixed_intrinsics:
+        ba = gopt.mapper.bundle_adjustment
+        ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = False
     return dict(pc.global_mapping(str(db), str(image_dir), str(out), options=gopt))
 
 
 def bundle_adjust(pc, rec, principal_point: bool, loss: str, loss_scale: float, tolerance: float,
-                  num_threads: int = -1) -> float:
-    """One global bundle adjustment in place (focal length and distortion free, (cx, cy) when `principal_point`;
-    robust `loss`, a pycolmap.LossFunctionType in lower case); returns the points' RMS reprojection error."""
-    opt = pc.BundleAdjustmentOptions(refine_focal_length=True, refine_principal_point=principal_point,
-                                     refine_extra_params=True, print_summary=False)
+                  num_threads: int = -1, intrinsics: bool = True) -> float:
+    """One global bundle adjustment in place (focal length and distortion free unless `intrinsics` is False,
+    (cx, cy) when `principal_point`; robust `loss`, a pycolmap.LossFunctionType in lower case); returns the
+    points' RMS reprojection error."""
+    opt = pc.BundleAdjustmentOptions(refine_focal_length=intrinsics, refine_principal_point=principal_point,
+                                     refine_extra_params=intrinsics, print_summary=False)
     opt.ceres.loss_function_type = getattr(pc.LossFunctionType, loss.upper())
     opt.ceres.loss_function_scale = loss_scale
     opt.ceres.solver_options.num_threads = threads(num_threads)

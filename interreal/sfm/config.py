@@ -69,6 +69,16 @@ class SfMConfig:
     ba_loss: str = option("soft_l1", "robust loss of the final bundle adjustment at 1 px (trivial = squared, as "
                                      "COLMAP's): a few bad observations pull a squared loss", choices=BA_LOSSES)
     ba_loss_scale: float = 1.0  # px: residuals beyond this are down-weighted
+    intrinsics: str | None = option(
+        None, "known camera intrinsics: a 3x3 K as text (K.txt: 9 numbers) or JSON {fx, fy, cx, cy, optional k1, "
+              "k2, p1, p2 and w, h: the image size K is for}; scaled to the dataset's images (from w, h, else the "
+              "capture size `frames` recorded); held fixed unless --intrinsics-refine; auto: SfM estimates them",
+        metavar="FILE")
+    intrinsics_refine: bool = option(False, "with --intrinsics: start from them and let bundle adjustment refine "
+                                            "them (default: fixed)")
+    allow_low_parallax: bool = option(
+        False, "map even when the check before mapping finds that the camera barely moved (turned in place or stood "
+               "still: no pair of frames shows >= ~1.5 deg of parallax), instead of refusing in seconds")
     seed: int = 0
     num_threads: int = -1
     verbose: bool = option(False, "show COLMAP's log")

@@ -24,6 +24,7 @@ from ..report import StageReport, fingerprint
 from . import colmap
 from .colmap import NativeLog
 from .config import Rung, SfMConfig, key_positions, loop_queries, rung_pairs
+from .intrinsics import KnownIntrinsics
 
 PP_MIN_GAIN = 0.003  # relative RMS reprojection gain that justifies freeing (cx, cy)
 PP_MAX_SHIFT = 0.02  # ... and the largest plausible move of (cx, cy), as a fraction of the image diagonal
@@ -43,6 +44,7 @@ class Workspace:
     names: list[str]
     state: dict[str, Any] = field(default_factory=dict)
     mask_dir: Path | None = None
+    known: KnownIntrinsics | None = None  # --intrinsics, in pixels of the dataset's images
     work: Path = field(init=False)  # DS/colmap: database.db, vocab_tree.bin, state.json, sparse/<rank>, colmap.log
     images: Path = field(init=False)
     db: Path = field(init=False)
@@ -61,6 +63,11 @@ class Workspace:
 
     def save_state(self) -> None:
         atomic.write_json(self.state_path, self.state)
+
+    @property
+    def fixed_intrinsics(self) -> bool:
+        """The camera is given and held: no step of the run may change it."""
+        return self.known is not None and not self.cfg.intrinsics_refine
 
 
 @dataclass
@@ -85,7 +92,8 @@ def extract(ws: Workspace, octave: int, fine: set[int], log: NativeLog | None = 
     cfg = ws.cfg
     groups = [(octave, [n for i, n in enumerate(ws.names) if i in fine]),
               (0, [n for i, n in enumerate(ws.names) if i not in fine])]
-    ex = colmap.Extraction(cfg.camera_model, cfg.sfm_long_side, cfg.max_features, num_threads=cfg.num_threads)
+    model, params = ("OPENCV", ws.known.colmap_params()) if ws.known is not None else (cfg.camera_model, "")
+    ex = colmap.Extraction(model, cfg.sfm_long_side, cfg.max_features, params, num_threads=cfg.num_threads)
     colmap.extract_features(ws.pc, ws.db, ws.images, groups, ex, ws.mask_dir, log)
 
 
@@ -105,8 +113,8 @@ def reconstruct(ws: Workspace, rung: Rung, out: Path, log: NativeLog | None = No
     pc, cfg, names = ws.pc, ws.cfg, ws.names
     colmap.fresh_model_dir(pc, out, cfg.seed)
     if rung.mapper == "global":
-        return colmap.global_map(pc, ws.db, ws.images, out, cfg.num_threads, cfg.seed)
-    opt = colmap.incremental_options(pc, cfg.num_threads, cfg.seed)
+        return colmap.global_map(pc, ws.db, ws.images, out, cfg.num_threads, cfg.seed, ws.fixed_intrinsics)
+    opt = colmap.incremental_options(pc, cfg.num_threads, cfg.seed, ws.fixed_intrinsics)
     # fewer, shorter global BAs while growing (same accuracy on fox, -30 % mapping time); refine_intrinsics polishes
     opt.ba_global_frames_ratio = opt.ba_global_points_ratio = 1.6
     opt.ba_global_max_num_iterations = 20
@@ -245,7 +253,7 @@ def polish(ws: Workspace, rec, refine: bool, extend: bool):
             bar.close()
     with rep.step("refine_intrinsics") as st:
         with ws.log():
-            res = refine_intrinsics(ws.pc, rec, cfg, cfg.principal_point)
+            res = refine_intrinsics(ws.pc, rec, cfg, "given" if ws.fixed_intrinsics else cfg.principal_point)
         rec = res.pop("_rec", rec)
         st.update(res)
     rep.figures["principal_point"] = res["principal_point"]
@@ -256,14 +264,17 @@ def polish(ws: Workspace, rec, refine: bool, extend: bool):
             st.update(extend_tracks(rec, ws.images, ws.mask_dir, window=cfg.track_window, bar=bar))
             bar.close()
         with rep.step("final_ba") as st, ws.log():
-            st["rms_px"] = round(_ba(ws.pc, rec, cfg, res["principal_point"] == "refined", EXTENDED_BA_TOLERANCE), 5)
+            st["rms_px"] = round(_ba(ws.pc, rec, cfg, res["principal_point"] == "refined", EXTENDED_BA_TOLERANCE,
+                                     intrinsics=not ws.fixed_intrinsics), 5)
     return rec
 
 
-def _ba(pc, rec, cfg: SfMConfig, principal_point: bool, tolerance: float | None = None) -> float:
-    """One global BA with the stage's loss, to cfg.ba_tolerance unless told; the RMS reprojection error."""
+def _ba(pc, rec, cfg: SfMConfig, principal_point: bool, tolerance: float | None = None,
+        intrinsics: bool = True) -> float:
+    """One global BA with the stage's loss, to cfg.ba_tolerance unless told (`intrinsics` False: the camera is
+    held); the RMS reprojection error."""
     return colmap.bundle_adjust(pc, rec, principal_point, cfg.ba_loss, cfg.ba_loss_scale,
-                                cfg.ba_tolerance if tolerance is None else tolerance, cfg.num_threads)
+                                cfg.ba_tolerance if tolerance is None else tolerance, cfg.num_threads, intrinsics)
 
 
 def refine_intrinsics(pc, rec, cfg: SfMConfig, mode: str | bool = "auto") -> dict[str, Any]:
@@ -273,8 +284,10 @@ def refine_intrinsics(pc, rec, cfg: SfMConfig, mode: str | bool = "auto") -> dic
     simulator at an unchanged reprojection error), while a real phone's off-centre point needs it. So "auto" keeps
     the free solution only when it lowers the RMS error by more than PP_MIN_GAIN (two extra parameters on tens of
     thousands of observations explain ~0.003 %) and moves (cx, cy) by less than PP_MAX_SHIFT
-    (docs/sfm-measurements.md has the figures).
+    (docs/sfm-measurements.md has the figures). Mode "given": the camera came with --intrinsics and is held.
     """
+    if mode == "given":  # --intrinsics, held: only poses and points move
+        return {"principal_point": "given", "rms_px": _ba(pc, rec, cfg, False, intrinsics=False)}
     if mode is False or mode == "fixed":
         return {"principal_point": "fixed", "rms_px": _ba(pc, rec, cfg, False)}
     if mode is True or mode == "refine":

@@ -15,17 +15,22 @@ import numpy as np
 from .. import atomic, provenance
 from ..conventions import frame_id
 from ..dataset import image_hw, list_images
-from ..errors import InputError, StageError
+from ..errors import InputError, LowParallaxError, StageError
 from ..layout import IMAGES_DIR, MASKS_DIR, SFM_MASKS_DIR, TRANSFORMS_FILE, UNDISTORTED_DIR
 from ..options import config_from
 from ..report import StageReport, files_fingerprint, fingerprint
 from ..transients import read_transient, transient_file
-from . import colmap
+from . import colmap, parallax
 from .config import (BA_LOSSES, SfMConfig, fine_frames, ladder, resolve_octave, use_track_extension,
                      use_track_refinement)
 from .export import export
+from .intrinsics import read_intrinsics, scaled_to
 from .ladder import Workspace, diagnose, extract, keep_models, polish, run_ladder
 from .pose_import import import_poses
+
+
+NOT_IN_MODEL = ("verbose", "undistort", "allow_low_parallax", "intrinsics", "intrinsics_refine")  # settings left out of
+# the final model's fingerprint: no effect on it, or (the intrinsics) already in the features' fingerprint by value
 
 
 def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
@@ -43,13 +48,21 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
                          "(at least 3 frames are needed)")
     _check_sizes(images)
     if poses_file is not None:
+        if cfg.intrinsics:
+            raise InputError("give --poses or --intrinsics, not both: an imported pose file carries its own camera")
         return import_poses(ds, Path(poses_file), images, cfg)
+    h0, w0 = image_hw(images[0])
+    known, known_note = scaled_to(read_intrinsics(cfg.intrinsics), ds, (w0, h0)) if cfg.intrinsics else (None, "")
     settings = asdict(cfg)
     fps = provenance.fingerprints(ds, ["images"])  # what validate compares later (stale poses)
     with StageReport(ds, "poses", inputs={"images": len(images), "fingerprints": fps}, settings=settings) as rep:
         ws = Workspace(colmap.load_pycolmap(cfg.verbose), ds, cfg, rep, [p.name for p in images])
         ws.work.mkdir(parents=True, exist_ok=True)
         ws.state = _load_state(ws.state_path)
+        ws.known = known
+        if known is not None:
+            rep.figures["intrinsics_given"] = {**known.to_json(), "note": known_note,
+                                               "held": not cfg.intrinsics_refine}
         ws.mask_dir, mask_src, mask_files = prepare_masks(ds, images, ws.work) if cfg.use_masks else (None, "off", [])
         if mask_src in ("sfm_masks", "masks.npy"):
             kinds = ["sfm_masks"] if mask_src == "sfm_masks" else ["masks", "transients"]
@@ -61,7 +74,8 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
         octave, side = resolve_octave(cfg, images[0]), max(image_hw(images[0]))
         fine = fine_frames(cfg, len(images), octave, side)
         fp_feat = fingerprint("features", files_fingerprint(images), files_fingerprint(mask_files) if mask_files else None,
-                              cfg.sfm_long_side, cfg.max_features, octave, cfg.camera_model, fine)
+                              cfg.sfm_long_side, cfg.max_features, octave, cfg.camera_model, fine,
+                              *([known.colmap_params(), cfg.intrinsics_refine] if known is not None else []))
         with rep.step("features") as st:
             if ws.state.get("features") == fp_feat and ws.db.exists():
                 st["reused"] = True
@@ -75,13 +89,14 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
                 st["keypoints_mean"] = round(d.num_keypoints() / max(1, d.num_images()), 1)
         extend = use_track_extension(cfg, len(images), side)
         rungs = ladder(cfg, len(images), mixed_octaves=len(fine) < len(images), extended=extend)
-        fp_final = fingerprint(fp_feat, {k: v for k, v in settings.items() if k not in ("verbose", "undistort")},
+        fp_final = fingerprint(fp_feat, {k: v for k, v in settings.items() if k not in NOT_IN_MODEL},
                                [asdict(r) for r in rungs])
         final = ws.sparse / "0"
         if ws.state.get("final") == fp_final and (ds / TRANSFORMS_FILE).exists() and final.exists():
             rep.steps["reuse"] = {"wall_s": 0.0, "reused": True}
             rec = ws.pc.Reconstruction(str(final))
         else:
+            check_parallax(ws, side)
             attempt, tried = run_ladder(ws, rungs, fp_feat)
             rec = polish(ws, attempt.rec, use_track_refinement(cfg, len(images), side), extend)
             keep_models(ws, attempt, rec, tried)
@@ -102,6 +117,29 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
     figures["wall_s"] = rep.data.get("wall_s")
     figures["steps"] = {k: v.get("wall_s") for k, v in rep.steps.items()}
     return figures
+
+
+def check_parallax(ws: Workspace, long_side: int) -> None:
+    """Refuse in seconds, before any mapping, a capture whose camera only turned or stood still
+    (`parallax.measure`: no sampled frame pair shows the parallax a triangulation needs); with
+    --allow-low-parallax only warn. Figures and time go to the report's step "parallax"."""
+    rep, cfg = ws.rep, ws.cfg
+    with rep.step("parallax") as st:
+        noise = max(1.0, long_side / cfg.sfm_long_side)  # keypoints come back in full-size pixels
+        res = parallax.measure(ws.pc, ws.db, ws.names, _size(ws), noise, None if ws.known is None else ws.known.K)
+        st.update(res.figures())
+    rep.figures["parallax"] = res.figures()
+    if not res.low():
+        return
+    if not cfg.allow_low_parallax:
+        raise LowParallaxError(res.message(ws.names))
+    rep.warn(f"the camera barely moved ({res.finding(ws.names)}); mapping anyway (--allow-low-parallax)",
+             cause="low-parallax")
+
+
+def _size(ws: Workspace) -> tuple[int, int]:
+    h, w = image_hw(ws.images / ws.names[0])
+    return w, h
 
 
 def make_config(**opts: Any) -> SfMConfig:

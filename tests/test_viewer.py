@@ -352,6 +352,7 @@ def test_bench_reports_the_viewer_speed(session):
     assert out["low"] == [40, 30] and out["sharp"] == [80, 60]
     assert 0 < out["first_low_s"] and 0 < out["sharp_s"] and out["drag_fps"] > 0
     assert out["drag_fps"] == pytest.approx(1 / out["drag_s_per_frame"], rel=1e-2)
+    assert 0 < out["sharp_after_slider_s"]
 
 
 def test_opens_on_the_farthest_camera_facing_the_scene():

@@ -1,0 +1,103 @@
+"""The masks stage's keyframe-measured colour weight (one-sided chains) and per-pixel motion evidence."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+
+from interreal.masks.appearance import AppearanceConfig, ColourModel, heldout_information
+from interreal.masks.flow import Step
+from interreal.masks.soft import anchor_soft
+from interreal.masks.track import Propagator, TrackConfig
+
+cv2.setNumThreads(2)
+
+
+def _keyframe(object_colour: tuple[int, int, int], seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A noisy grey-green background with a disk of `object_colour` (plus the same noise); its index map."""
+    rng = np.random.default_rng(seed)
+    h, w = 120, 160
+    img = np.clip(rng.normal((90, 120, 90), 25, (h, w, 3)), 0, 255).astype(np.uint8)
+    lab = np.zeros((h, w), np.uint8)
+    cv2.circle(lab, (80, 60), 30, 1, -1)
+    obj = np.clip(rng.normal(object_colour, 25, (h, w, 3)), 0, 255).astype(np.uint8)
+    img[lab > 0] = obj[lab > 0]
+    return img, lab
+
+
+def test_heldout_information_measures_separability_on_the_keyframe():
+    """Colour that tells object from background scores near 1, the same colour distribution near 0; and a
+    model reweighted to that figure is the model fitted with it."""
+    cfg = AppearanceConfig()
+    scores = {}
+    for name, colour in (("red", (220, 40, 40)), ("same", (90, 120, 90))):
+        img, lab = _keyframe(colour)
+        soft, known = anchor_soft(lab, 1, (img.shape[1], img.shape[0]))
+        scores[name] = heldout_information(img, soft, known, cfg)
+    assert scores["red"] > 0.7, scores      # measured 0.80 (the noise makes some colours shared)
+    assert scores["same"] < 0.1, scores
+    img, lab = _keyframe((220, 40, 40))
+    soft, known = anchor_soft(lab, 1, (img.shape[1], img.shape[0]))
+    base = ColourModel.fit(img, soft, known, cfg)
+    direct = ColourModel.fit(img, soft, known, replace(cfg, weight=scores["red"]))
+    assert np.allclose(base.reweighted(scores["red"]).table, direct.table, atol=1e-6)
+    # no object annotated on the keyframe: nothing to measure
+    empty = np.zeros_like(lab)
+    soft, known = anchor_soft(empty, 1, (img.shape[1], img.shape[0]))
+    assert heldout_information(img, soft, known, cfg) == 0.0
+
+
+def _propagator(w: int, h: int, **kw) -> Propagator:
+    return Propagator(lambda i: np.zeros((h, w, 3), np.uint8), 2, (w, h), 1, replace(TrackConfig(prefetch=0), **kw))
+
+
+def test_motion_evidence_removes_mask_that_moves_with_the_background():
+    """An object mask that also covers a strip of background: the strip's flow follows the camera (-3 px), the
+    object's its own (+4 px); the strip leaves the object, the object's own pixels stay, nothing is added."""
+    w, h = 160, 120
+    prop = _propagator(w, h, motion=1.0)
+    obj = np.zeros((h, w), bool)
+    obj[40:80, 60:100] = True                 # the real object
+    strip = np.zeros((h, w), bool)
+    strip[40:80, 100:110] = True              # background the mask slid onto
+    push = np.zeros((h, w, 2), np.float32)
+    push[..., 0] = -3.0
+    push[obj, 0] = 4.0
+    soft = np.zeros((h, w, 2), np.float32)
+    soft[..., 0] = np.where(obj | strip, 0.95, 0.02)
+    soft[..., 1] = 1.0 - soft[..., 0]
+    xs, ys = prop.grid
+    st = Step(xs, ys, np.ones((h, w), np.float32), push)
+    out = prop._motion_evidence(soft, st)
+    assert out[strip, 0].max() < 0.25, out[strip, 0].max()           # the strip becomes background (0.17)
+    assert out[obj, 0].min() > 0.94                                   # the object keeps its pixels (0.95)
+    assert np.all(out[..., 0] <= soft[..., 0] + 1e-6)                 # evidence only removes
+    assert np.allclose(out.sum(-1), 1.0, atol=1e-5)
+    # object and camera moving alike: no evidence either way
+    same = Step(xs, ys, np.ones((h, w), np.float32), np.full((h, w, 2), -3.0, np.float32))
+    assert np.allclose(prop._motion_evidence(soft, same), soft, atol=1e-5)
+
+
+def test_one_sided_chain_uses_the_keyframe_measured_colour_weight(monkeypatch):
+    """First frame only: the chain after it weighs colour by the keyframe's held-out information (> the fixed
+    0.25 for a red disk on green); between two keyframes, or with `adaptive` off, the fixed weight stays."""
+    img, lab = _keyframe((220, 40, 40))
+    h, w = lab.shape
+    used: list[float] = []
+    orig = ColourModel.reweighted
+    monkeypatch.setattr(ColourModel, "reweighted", lambda self, wt: used.append(wt) or orig(self, wt))
+
+    def labels(keys: list[int], adaptive: bool) -> list[np.ndarray]:
+        cfg = TrackConfig(prefetch=0, appearance=AppearanceConfig(adaptive=adaptive))
+        prop = Propagator(lambda i: img, 4, (w, h), 1, cfg)
+        return [r.labels for r in prop.run({k: lab for k in keys})]
+
+    out = labels([0], True)
+    assert len(used) == 1 and used[0] > 0.7, used
+    assert all(((m == 1) == (lab == 1)).mean() > 0.98 for m in out)   # a still frame keeps its disk
+    used.clear()
+    labels([0], False)
+    labels([0, 3], True)                                             # no one-sided chain
+    assert used == []

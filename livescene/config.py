@@ -69,6 +69,11 @@ class ModelConfig:
     capacity: float = 1.0  # multiplies the auto resolutions (capacity sweeps)
     max_resolution: int = 256  # cap for the finest auto spatial resolution
     max_k_resolution: int = 16
+    appearance: str = "off"  # per-frame colour transform of the training renders (`livescene.appearance`): phone
+    # auto-exposure and white balance; "gain" (per channel), "affine" (3x3 + bias) or "off"; new views render
+    # neutral. Off by default: it did not help on the real laptop video (figures: docs/interfaces.md)
+    appearance_frames: int = 0  # rows of the appearance table: the dataset's frame count (set by `resolve`)
+    appearance_lr: float = 0.005  # peak learning rate of the appearance codes (the schedule of `lr`)
 
 
 @dataclass
@@ -102,6 +107,7 @@ class LossConfig:
     plane_tv_prob: float = 0.0001
     interlevel: float = 1.0
     distortion: float = 0.001
+    appearance: float = 0.001  # pulls the appearance codes to identity (mean squared code per ray)
 
 
 @dataclass
@@ -197,6 +203,8 @@ def _coerce(value: Any, kind: Any, where: str) -> Any:
             raise ConfigError(f"{where}: {value!r} is not a finite number")
         return number
     if kind is str:
+        if isinstance(value, bool):  # YAML 1.1 reads a bare off / on (no / yes) as a boolean: the word was meant
+            return "on" if value else "off"
         if not isinstance(value, str):
             raise ConfigError(f"{where}: expected text, got {value!r}")
         return value
@@ -212,6 +220,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "model.motion": ("auto", "rigid", "none"),
     "model.part_k": ("rest", "state"),
     "model.background": ("white", "black", "learned"),
+    "model.appearance": ("off", "gain", "affine"),
     "split": ("ours", "official"),
 }
 _POS, _NONNEG, _ONE, _UNIT = (0.0, None, True), (0.0, None, False), (1.0, None, False), (0.0, 1.0, False)
@@ -228,6 +237,7 @@ RANGES: dict[str, tuple[float | None, float | None, bool]] = {  # path: (low, hi
     "model.var_resolution": _NONNEG, "model.var_features": _ONE, "model.var_hidden": _ONE,
     "model.max_objects": _ONE, "model.reject_threshold": _UNIT, "model.capacity": _POS,
     "model.max_resolution": (8.0, None, False), "model.max_k_resolution": (2.0, None, False),
+    "model.appearance_lr": _POS,
     "sampler.proposal_samples": _ONE, "sampler.samples": _ONE, "sampler.anneal_steps": _NONNEG,
     "sampler.anneal_slope": _POS, "sampler.near": _POS, "sampler.near_auto": _NONNEG,
     "loss.focal_alpha": _UNIT,
@@ -388,6 +398,8 @@ def resolve_sizes(cfg: ModelConfig, scene: SceneInfo) -> ModelConfig:
     ]
     if out.var_resolution <= 0:
         out.var_resolution = max(2, scene.n_frames // 2)
+    if out.appearance != "off":  # one code per frame, whatever was asked: the table is indexed by frame
+        out.appearance_frames = scene.n_frames
     return out
 
 

@@ -3,9 +3,13 @@ unlabelled frames, mask IoU of the probability field, and novel-state PSNR again
 (camera, states) pair (with, per novel-state view, the mask IoU there - who owns the space at the new states - and
 how training saw its parts).
 
-Held-out frames are the trainer's split (every 8th frame, never trained on). Truth is anything with the `Truth`
-protocol; `--gt DIR` opens one through an installed truth reader (`open_truth`): for an `interreal synth` capture,
-`interreal.synth.evaltruth` (gt/states.json, gt/depth, gt/instance, and its scene for novel states).
+Held-out frames are the trainer's split (every 8th frame, never trained on). With per-frame appearance
+(`model.appearance`) `psnr` / `ssim` are neutral (identity, as new views render) and `psnr_interpolated` /
+`ssim_interpolated` give each held-out frame the appearance interpolated from the training frames around it.
+
+Truth is anything with the `Truth` protocol; `--gt DIR` opens one through an installed truth reader
+(`open_truth`): for an `interreal synth` capture, `interreal.synth.evaltruth` (gt/states.json, gt/depth,
+gt/instance, and its scene for novel states).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from tqdm import tqdm
 from interreal.dataset import Intrinsics
 from interreal.errors import InterRealError
 
+from .appearance import apply_to_image, interpolate_codes
 from .data import load_frame, nearest_views, scored_mse, transient_at
 from .errors import LiveSceneError
 from .losses import psnr
@@ -167,6 +172,7 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
     if not held:
         raise LiveSceneError("the run has no held-out frames (holdout_every <= 1)")
     per_frame = []
+    codes = held_out_codes(run)
     for i in tqdm(held, desc="eval held-out", disable=not progress):
         intr = view_intrinsics(views, i, scale)
         rgb, mask = load_frame(views, i)
@@ -174,13 +180,14 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
             rgb = cv2.resize(rgb, (intr.w, intr.h), interpolation=cv2.INTER_AREA)
             mask = None if mask is None else cv2.resize(mask, (intr.w, intr.h), interpolation=cv2.INTER_NEAREST)
         out = meter.add(render_view(run, views.c2w_gl[i], intr, None, time=float(views.times[i]), fast=fast))
-        gt = rgb.astype(np.float32) / 255.0
+        recorded = rgb.astype(np.float32) / 255.0
         tr = transient_at(views, i, intr.w, intr.h)  # a person / hand: not part of the scene, not scored
         if tr is not None:
-            gt[tr] = out["rgb"][tr]
             mask = None if mask is None else np.where(tr, 255, mask).astype(np.uint8)
-        rec: dict[str, Any] = {"frame": views.dataset.frames[i].fid, "psnr": psnr(scored_mse(out["rgb"], gt, tr)),
-                               "ssim": ssim(out["rgb"], gt)}
+        rec: dict[str, Any] = {"frame": views.dataset.frames[i].fid, **image_scores(out["rgb"], recorded, tr)}
+        if codes is not None:  # the same render as this frame's camera would have recorded it (module doc)
+            look = apply_to_image(out["rgb"], codes[i], run.model.appearance.mode)
+            rec.update({f"{k}_interpolated": v for k, v in image_scores(look, recorded, tr).items()})
         if tr is not None:
             rec["transient_share"] = round(float(tr.mean()), 4)
         inst = truth.instance(i, intr) if truth is not None and hasattr(truth, "instance") else None
@@ -202,7 +209,9 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
     result: dict[str, Any] = {"run": str(run.run_dir), "step": run.step, "held_out_frames": len(held),
                               "psnr": mean("psnr"), "ssim": mean("ssim"), "mask_iou": mean("mask_iou"),
                               "depth_l1": mean("depth_l1"), "reject_threshold": run.model.cfg.reject_threshold,
-                              "params": run.model.param_count()}
+                              "params": run.model.param_count(), "appearance": appearance_note(run)}
+    if codes is not None:
+        result.update(psnr_interpolated=mean("psnr_interpolated"), ssim_interpolated=mean("ssim_interpolated"))
     # states on frames without labels
     learned = learned_frame_states(run)
     labels, given = views.dataset.label_matrix()
@@ -255,6 +264,36 @@ def evaluate(run, truth: Truth | None = None, *, max_frames: int = 0, scale: flo
     result["unsupported"] = unsupported_pairs(run, sweep_frames(views)) if m else []
     result["speed"] = {**meter.report(), "eval_s": round(time.perf_counter() - t_start, 3)}
     return result
+
+
+def image_scores(rendered: np.ndarray, recorded: np.ndarray, transient: np.ndarray | None) -> dict[str, float]:
+    """PSNR and SSIM of a render against the recorded frame; transient pixels (a hand) are left out of the PSNR and
+    given the render's colour for the SSIM (its window needs whole images)."""
+    if transient is not None:
+        recorded = recorded.copy()
+        recorded[transient] = rendered[transient]
+    return {"psnr": psnr(scored_mse(rendered, recorded, transient)), "ssim": ssim(rendered, recorded)}
+
+
+def held_out_codes(run) -> np.ndarray | None:
+    """(N, D) an appearance code per frame, the held-out ones interpolated in time from the training frames'
+    (`livescene.appearance.interpolate_codes`); None when the run has no per-frame appearance."""
+    app = run.model.appearance
+    if app is None:
+        return None
+    codes = app.centred().detach().cpu().numpy()
+    trained = np.flatnonzero(app.trained.cpu().numpy()).tolist()
+    return interpolate_codes(codes, run.views.times, trained)
+
+
+def appearance_note(run) -> dict[str, Any]:
+    """What `psnr` / `ssim` and `*_interpolated` mean for this run's appearance setting."""
+    app = run.model.appearance
+    if app is None:
+        return {"mode": "off"}
+    return {"mode": app.mode, "psnr": "neutral: rendered with the identity appearance, as new views are",
+            "psnr_interpolated": "each held-out frame's appearance interpolated in time from the nearest training "
+                                 "frames' codes (no held-out pixel is used)"}
 
 
 def labelled_state_errors(learned: np.ndarray, labels: np.ndarray, given: np.ndarray, views) -> dict[str, Any]:

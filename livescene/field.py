@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .appearance import FrameAppearance
 from .articulation import PartMotions
 from .config import ModelConfig
 from .errors import LiveSceneError
@@ -282,6 +283,9 @@ class LiveSceneModel(nn.Module):
         self.bg_color = nn.Parameter(torch.full((3,), 0.5), requires_grad=cfg.background == "learned")
         self.register_buffer("slot_mask", torch.arange(cfg.max_objects + 1) < n_objects)
         self.slot_mask[-1] = True
+        # per-frame colour transform of the training renders only (`livescene.appearance`); None = off
+        self.appearance = (FrameAppearance(cfg.appearance, cfg.appearance_frames)
+                           if cfg.appearance != "off" else None)
 
     def background(self) -> torch.Tensor:
         if self.cfg.background == "learned":
@@ -380,4 +384,5 @@ class LiveSceneModel(nn.Module):
         return {"field": list(self.field.parameters()) + ([self.bg_color] if self.bg_color.requires_grad else []),
                 "proposals": list(self.proposals.parameters()),
                 "prob": list(self.prob.parameters()),
-                "variable": list(self.variable.parameters())}
+                "variable": list(self.variable.parameters()),
+                **({"appearance": list(self.appearance.parameters())} if self.appearance is not None else {})}

@@ -3,7 +3,8 @@
 colour MSE, depth MSE (when depth exists), focal loss on rendered object masks, repulsion between rays of
 different objects, Lvar (MSE on labelled (frame, object) pairs only), Laplacian smoothness along k, plane TV,
 L1 of k-planes towards 1, proposal interlevel and distortion losses, smoothness of the per-frame variable
-along time (not across its feature channels, as the official code does by mistake).
+along time (not across its feature channels, as the official code does by mistake), and the per-frame appearance
+codes pulled to identity (`livescene.appearance`).
 
 `TERMS` is the table the trainer composes the loss from: each term's name is its weight in `LossConfig`.
 """
@@ -180,6 +181,8 @@ TERMS: dict[str, tuple[Term, bool]] = {
     "plane_tv": (lambda x, w: plane_tv(x.model.field.grid), True),
     "plane_tv_proposal": (lambda x, w: _proposal_sum(x, plane_tv), True),
     "plane_tv_prob": (lambda x, w: plane_tv(x.model.prob.grid), True),
+    "appearance": (lambda x, w: x.model.appearance.penalty(x.batch["frame"])
+                   if x.model.appearance is not None else None, False),
 }
 ALWAYS = {"rgb"}  # computed even at weight 0: its value is the PSNR the logs report
 

@@ -125,7 +125,7 @@ def load_checkpoint(run_dir: str | Path, which: str | int | None = None,
 
 def checkpoint_config(ckpt: dict) -> TrainConfig:
     """The config a checkpoint was trained with; runs from before the background slice read k = 0 there, runs
-    from before rigid parts have none."""
+    from before rigid parts or per-frame appearance have none."""
     try:
         cfg = from_dict(ckpt["config"])
     except LiveSceneError as exc:
@@ -134,6 +134,8 @@ def checkpoint_config(ckpt: dict) -> TrainConfig:
         cfg.model.background_k = "zero"
     if cfg.model.motion == "auto":  # runs from before rigid parts
         cfg.model.motion = "none"
+    if "appearance" not in ckpt["config"].get("model", {}):  # runs from before per-frame appearance have none,
+        cfg.model.appearance = "off"  # whatever the default is now
     return cfg
 
 

@@ -12,6 +12,7 @@ resumes from (the steps are trained again), and leaves a finished run untouched.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import json
 import math
@@ -61,6 +62,8 @@ def build_model(cfg: TrainConfig, views: Views) -> tuple[TrainConfig, LiveSceneM
     model = LiveSceneModel(cfg.model, views.n_objects)
     if motions:
         model.motions.load(motions)
+    if model.appearance is not None:
+        model.appearance.set_trained(views.train)
     return cfg, model
 
 
@@ -248,6 +251,8 @@ class Trainer:
         values = model.frame_values(batch["t"])
         out = render_rays(model, batch["origins"], batch["dirs"], values, self.box, cfg.sampler,
                           step=self.step, gen=self.gen_dev, with_logits=m > 0 and self.data.has_masks)
+        if model.appearance is not None:  # each frame's exposure and white balance, on its final colours only
+            out = dataclasses.replace(out, rgb=model.appearance(out.rgb, batch["frame"]))
         regularise = not (cfg.reg_every > 1 and self.step % cfg.reg_every)
         terms = L.loss_terms(L.LossInputs(model, out, batch, values, self.gen), cfg.loss, regularise)
         return terms, out
@@ -260,7 +265,7 @@ class Trainer:
         time_frac = self.elapsed / self.train_budget() if self.max_minutes else 0.0
         lr = cfg.lr * self.lr_scale * lr_factor(self.step, cfg, time_frac)
         for g in self.opt.param_groups:
-            g["lr"] = lr
+            g["lr"] = lr * (cfg.model.appearance_lr / cfg.lr if g.get("name") == "appearance" else 1.0)
         self.opt.zero_grad(set_to_none=True)
         if not torch.isfinite(total):
             return {"loss": float("nan")}
@@ -367,7 +372,9 @@ class Trainer:
               f"{self.data.w}x{self.data.h}, {ds.n_objects} objects, device {describe(self.device)}\n"
               f"  model: {params:,} parameters (planes {m.resolution}x{m.scales} k={m.k_resolution} "
               f"f={m.features}; proposals {m.proposal_resolutions}; variable {m.var_resolution} nodes; box from "
-              f"{self.views.box_source}; samples from {cfg.sampler.near:g} in front of a camera)", flush=True)
+              f"{self.views.box_source}; samples from {cfg.sampler.near:g} in front of a camera"
+              + (f"; per-frame appearance {m.appearance}" if self.model.appearance is not None else "") + ")",
+              flush=True)
         if self.model.motions is not None:
             rigid = [self.views.names[o] for o in self.model.motions.rigid(ds.n_objects)]
             print(f"  rigid parts (articulation.json): {', '.join(rigid)}; read at k = {m.part_k}", flush=True)

@@ -18,7 +18,7 @@ from ..errors import DatasetError
 from ..layout import ARTICULATION_FILE, IMAGES_DIR, LABELS_FILE, MAPPING_FILE, REPORTS_DIR, TRANSFORMS_FILE
 from ..provenance import stale_stages
 from ..transients import TRANSIENTS_DIR, problems as transient_problems
-from ..images import image_size
+from ..images import image_size, list_images
 from .official import is_official_data, raw_value_ok
 from .io import label_value_problem, npy_header, pose_matrix, read_articulation, read_yaml, resolve_blender_path
 from .types import CAMERA_MODELS, DISTORTION_KEYS, INTRINSIC_KEYS
@@ -288,7 +288,7 @@ def _validate_labels(root: Path, mapping: dict[int, str], frames: list[tuple[str
 def _extracted_frames(root: Path) -> set[int]:
     """Frame numbers of the images in DS/images/, posed or not."""
     out = set()
-    for p in (root / IMAGES_DIR).glob("frame_*") if (root / IMAGES_DIR).is_dir() else ():
+    for p in list_images(root / IMAGES_DIR):
         try:
             out.add(frame_index(p.stem))
         except ValueError:

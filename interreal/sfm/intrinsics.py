@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..dataset.types import Intrinsics
 from ..errors import InputError
 from ..report import read_report
 
@@ -193,6 +194,6 @@ def scaled_to(known: KnownIntrinsics, ds: Path, image_size: tuple[int, int]) -> 
         raise InputError(f"--intrinsics {known.source}: its principal point ({known.cx:g}, {known.cy:g}) is far from "
                          f"the centre of the {wr}x{hr} images it was taken to refer to ({why}): K belongs to images "
                          "of another size; give \"w\" and \"h\" in a JSON file")
-    sx, sy = w / wr, h / hr
-    out = replace(known, fx=known.fx * sx, fy=known.fy * sy, cx=known.cx * sx, cy=known.cy * sy, size=(w, h))
+    s = Intrinsics(wr, hr, known.fx, known.fy, known.cx, known.cy).scaled(w, h)  # the dataset's one scaling rule
+    out = replace(known, fx=s.fl_x, fy=s.fl_y, cx=s.cx, cy=s.cy, size=(w, h))
     return out, f"K for {wr}x{hr} ({why}) scaled to {w}x{h}"

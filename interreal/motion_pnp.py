@@ -19,7 +19,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .motion_fit import PartViews
+from .motion_fit import PartViews, part_point
 
 RATIO = 0.8  # Lowe's ratio test
 MAX_REPROJ_PX = 2.0  # a triangulated point must reproject within this in both frames
@@ -159,6 +159,7 @@ def pnp_views(grays: dict[int, np.ndarray], masks: dict[int, np.ndarray], c2w: d
     few points or fewer than 3 frames located) and figures."""
     feats = {i: features(grays[i], masks[i], most) for i in grays}
     pts, desc, ref = reference_points(feats, refs, c2w, k, dist)
+    point = part_point(pts)  # the path of the part's middle, not of the world's origin metres away
     fig: dict[str, Any] = {"route": "pnp", "reference_frames": [int(r) for r in ref], "points": int(len(pts))}
     order = sorted(feats)
     located: dict[int, tuple[np.ndarray, int]] = {}
@@ -179,9 +180,9 @@ def pnp_views(grays: dict[int, np.ndarray], masks: dict[int, np.ndarray], c2w: d
     if len(frames) < 3:
         return None, fig
     rot = np.stack([c2w[i][:3, :3] @ located[i][0][:, :3] for i in frames])
-    u = np.stack([c2w[i][:3, :3] @ located[i][0][:, 3] for i in frames])
+    u = np.stack([c2w[i][:3, :3] @ (located[i][0][:, :3] @ point + located[i][0][:, 3]) for i in frames])
     centre = np.stack([c2w[i][:3, 3] for i in frames])
-    return PartViews(np.asarray(frames), rot, u, centre), fig
+    return PartViews(np.asarray(frames), rot, u, centre, np.stack([c2w[i][:3, :3] for i in frames])), fig
 
 
 def reference_frames(positions: list[int], states: np.ndarray, known: np.ndarray, labelled: np.ndarray,

@@ -34,7 +34,7 @@ from .conventions import ARTICULATION_FILE, IMAGES_DIR, opengl_to_opencv
 from .dataset import Articulation, known_states, load_dataset, write_articulation
 from .errors import InputError
 from .layout import MOTIONS_DIR  # DS/motions/<object>/: the part reconstructions
-from .motion_fit import FLAG_TOL, PartViews, fit_motion
+from .motion_fit import FLAG_TOL, PartViews, fit_motion, part_point
 from .motion_pnp import pnp_views, reference_frames
 from .options import add_flags, config_from, option, values_from_args
 from .report import StageReport, finished_with, fingerprint, read_report, warning_lines
@@ -150,9 +150,11 @@ def map_part(pc, ds, db: Path, out: Path, cfg: MotionConfig, seed: int):
 
 
 def part_views(rec, ds) -> PartViews:
-    """A part reconstruction's registered frames related to their world cameras (OpenCV axes inside)."""
+    """A part reconstruction's registered frames related to their world cameras (OpenCV axes inside). The point
+    followed is the middle of the part's own points (`part_point`), not the reconstruction's origin."""
     by_name = {Path(f.file_path).name: i for i, f in enumerate(ds.frames)}
-    frames, rot, u, centre = [], [], [], []
+    point = part_point(np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3))
+    frames, rot, u, centre, cam_rot = [], [], [], [], []
     for im in rec.images.values():
         if not im.has_pose or im.name not in by_name:
             continue
@@ -161,11 +163,12 @@ def part_views(rec, ds) -> PartViews:
         c2w = opengl_to_opencv(ds.frames[i].c2w)
         frames.append(i)
         rot.append(c2w[:3, :3] @ w2c_part[:, :3])
-        u.append(c2w[:3, :3] @ w2c_part[:, 3])
+        u.append(c2w[:3, :3] @ (w2c_part[:, :3] @ point + w2c_part[:, 3]))
         centre.append(c2w[:3, 3])
+        cam_rot.append(c2w[:3, :3])
     order = np.argsort(frames)
     return PartViews(np.asarray(frames)[order], np.asarray(rot)[order], np.asarray(u)[order],
-                     np.asarray(centre)[order])
+                     np.asarray(centre)[order], np.asarray(cam_rot)[order])
 
 
 # ----------------------------------------------------------------------------------------------------------------

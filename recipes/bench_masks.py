@@ -11,7 +11,8 @@ to exit. Settings:
 - the simulated capture (keyframe every 60).
 Per run: j_mean (Jaccard, mean over the frames that were not given, per object, then over objects), j_worst_object,
 s_per_frame and fps of the whole command, warned (a `masks-unreliable` warning in DS/reports/masks.json),
-lost_warned (an `object-lost` warning), predicted_j (the stage's own estimate).
+lost_warned (an `object-lost` warning), predicted_j (the stage's own estimate), redetected (frames where the stage
+found a collapsed object again from its keyframe's appearance).
 Warning quality over the DAVIS runs of both protocols: precision / recall of "warned" for "J < 0.7", with the
 shipped weights (in-sample) and leave-one-sequence-out (the health model refit without the held-out sequence).
 `--fit` prints weights refit on all sequences (to paste into interreal/masks/health.py).
@@ -153,6 +154,8 @@ def run_one(data: str, ds: Path, gts, names, keys: list[int], setting: str, vari
             "warned": "masks-unreliable" in causes, "lost_warned": "object-lost" in causes,
             "predicted_j": round(float(min(fig["confidence_mean"].values())), 4),  # worst object, as warned
             "lost": {n: fig["health"][n]["lost"] for n in names},
+            # frames where the stage found a collapsed object again (interreal/masks/redetect.py)
+            "redetected": {n: (fig.get("redetected") or {}).get(n, []) for n in names},
             "suggested": fig["suggested_frames"],
             "per_object": "; ".join(f"{n}={v:.3f}" for n, v in zip(names, per_obj)),
             "worst_frames": worst,

@@ -103,14 +103,22 @@ def davis_clip(name: str, n: int, size=(427, 240)) -> tuple[list, list]:
 
 
 def test_davis_lost_object_is_warned_and_an_easy_sequence_is_not(tmp_path):
-    """drift-straight, first frame only: the car is lost near the end (J 0 on its last frames; known failure of
-    propagation); blackswan: J about 0.9, nothing to warn about."""
+    """drift-straight, first frame only: the car's mask collapses near the end (propagation alone left it empty on
+    the last six frames, J 0); re-detection finds the car again by its keyframe's colours, the report names those
+    frames, and the sequence is still warned about (J about 0.45). blackswan: J about 0.9, nothing to warn about."""
     images, truths = davis_clip("drift-straight", 50)
     rep = run(tmp_path / "drift", images, truths, [0], "car")
     causes = {w["cause"] for w in rep["warnings"]}
-    assert {"object-lost", "masks-unreliable"} <= causes, rep["warnings"]
-    lost = lost_frames(rep, "car")
-    assert lost and min(lost) >= 35 and max(lost) == 49, sorted(lost)
+    assert "masks-unreliable" in causes, rep["warnings"]
+    found = [int(f) for f in rep["figures"]["redetected"]["car"]]
+    assert found and min(found) >= 35, found
+    assert any("found again" in w["message"] for w in rep["warnings"]), rep["warnings"]
+    # where the mask collapsed is the first frame to annotate (the stage could not hold the car there)
+    assert 35 <= int(rep["figures"]["suggested_frames"][0]) <= min(found), rep["figures"]["suggested_frames"]
+    masks = [np.load(tmp_path / "drift" / "ds" / "masks" / f"{fid_of_index(i)}.npy")[..., 0] for i in range(44, 50)]
+    assert min(m.sum() for m in masks) > 0  # no empty mask where the car is in view
+    j = [float((m & (t == 1)).sum() / (m | (t == 1)).sum()) for m, t in zip(masks, truths[44:50])]
+    assert np.mean(j) > 0.25 and min(j) > 0.1, j  # J 0 on all six without re-detection
     assert rep["figures"]["confidence_mean"]["car"] < 0.7
     images, truths = davis_clip("blackswan", 20)
     rep = run(tmp_path / "swan", images, truths, [0], "swan")

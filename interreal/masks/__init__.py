@@ -1,7 +1,8 @@
 """`interreal masks`: propagate a few keyframe masks to every frame with OpenCV flow, with confidence.
 
 Modules: keyframes (PNG / LabelMe input, GrabCut for boxes), flow (DIS / RLOF / Farneback, forward-backward
-trust), appearance (per-label colour models), track (chains, fusion, refinement), confidence (where to add
+trust), appearance (per-label colour models), track (chains, fusion, refinement), redetect (finding an object
+again after its mask collapsed, from its keyframe's colours and ORB features), confidence (where to add
 keyframes), health (lost / jumped / drifting per frame, a predicted J, the warnings), preview, stage.
 """
 
@@ -56,6 +57,9 @@ def main(args: argparse.Namespace) -> int:
               f"on average (at most {100 * tr['max_share']:.0f} %) -> {args.dataset / 'transients'}")
     for name, frames in (tr.get("occluded") or {}).items():
         print(f"  {name}: hidden behind the person / hand at frames {frames} (occluded, not lost)")
+    for name, frames in (fig.get("redetected") or {}).items():
+        if frames:
+            print(f"  {name}: found again after its mask collapsed at frames {', '.join(frames[:8])}")
     for name, c in fig["confidence_mean"].items():
         print(f"  {name}: predicted J {c:.2f} (lowest frame {fig['confidence_min'][name]:.2f})")
     for line in warning_lines(args.dataset, ["masks"]):

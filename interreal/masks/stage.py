@@ -187,7 +187,11 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
                         vw.write(video[p])
         reach = keyframe_reach(motion, keys) if len(fids) > 1 else []
         far = sorted((x for x in reach if x[2] > MAX_REACH), key=lambda x: -x[2])
-        picks = next_keyframes(conf[:, :n_obj], is_key, suggest, hl.stretches["lost"][:n_obj],
+        # where a mask collapsed (and was found again) the stage could not hold the object either: after the lost
+        # stretches, the first frames to annotate
+        collapsed = [[(e.since, e.pos) for e in prop.redetections if e.obj == k] for k in range(n_obj)]
+        picks = next_keyframes(conf[:, :n_obj], is_key, suggest,
+                               [lost + col for lost, col in zip(hl.stretches["lost"][:n_obj], collapsed)],
                                [reach_suggestion(motion, a, b, keys) for a, b, _ in far[:3]])
         mean_pred = hl.mean_predicted(is_key)
         rep.figures.update({
@@ -217,6 +221,9 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
             "max_share": round(float(transient_share.max(initial=0.0)), 5),
             "share": {fids[i]: round(float(v), 5) for i, v in enumerate(transient_share) if v > 0}}
         rep.figures["transients"]["occluded"] = {kf.names[k]: _stretch_text(fids, runs) for k, runs in occluded.items()}
+        # frames where a chain found a collapsed object again from its keyframe's appearance (`redetect`)
+        rep.figures["redetected"] = {kf.names[k]: sorted({fids[e.pos] for e in prop.redetections if e.obj == k})
+                                     for k in range(n_obj)}
         rep.figures["keyframe_reach"] = [{"first": fids[a], "last": fids[b], "reach": round(r, 4)} for a, b, r in reach]
         rep.figures["max_keyframe_reach"] = round(max((r for _, _, r in reach), default=0.0), 4)
         for k, n in enumerate(kf.names):
@@ -230,6 +237,9 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
                 continue
             why = [f"{st} at frames {_stretch_text(fids, hl.stretches[st][k])}"
                    for st in ("lost", "jumped", "drifting") if hl.stretches[st][k]]
+            if rep.figures["redetected"][n]:
+                why.append(f"its mask collapsed and the object was found again by its keyframe's appearance at frames "
+                           f"{_ranges(rep.figures['redetected'][n])}")
             if far:
                 why.append("the view moves up to " + ", ".join(f"{100 * r:.0f} %" for _, _, r in far[:1])
                            + f" of its width from the nearest keyframe (propagation holds to about {100 * MAX_REACH:.0f} %)")

@@ -7,9 +7,11 @@ over a whole region, a colour vote (the keyframes' colour models) picks the chai
 refined on the full-size image with a guided filter, and turned into exclusive labels by argmax
 (background last). Keyframes re-anchor every chain, so drift never spans more than one gap. Before the
 first keyframe only the backward chain exists, after the last only the forward one; there the colour model is
-the only anchor to the keyframe and weighs as much as it separated the labels on the keyframe itself. At every
-step, mask pixels whose flow follows the background's motion rather than their object's can be taken out of the
-object (`TrackConfig.motion`, off by default).
+the only anchor to the keyframe and weighs as much as it separated the labels on the keyframe itself, and at
+every step mask pixels whose flow follows the background's motion rather than their object's are taken out of
+the object (`TrackConfig.motion_one_sided`; `motion` between keyframes, off by default). These chains also
+watch each object's mask: when it collapses, the object is searched for by its keyframe's appearance and put
+back where it is found (`redetect`), since no later keyframe will bring a lost object back.
 
 Soft maps (not binary) are warped: bilinear warping of a binary mask rounds every step and erodes thin
 parts; warping probabilities keeps sub-pixel boundaries, and a per-step guided filter plus a mild
@@ -29,6 +31,7 @@ import numpy as np
 from ..conventions import UNANNOTATED
 from .appearance import AppearanceConfig, ColourModel, heldout_information, joint_log_table
 from .flow import FlowConfig, FlowEngine, Step, make_step, sampling_grid
+from .redetect import Event, RedetectConfig, Redetector
 from .soft import anchor_soft, argmax_channels, argmax_labels, channels_to_labels, chsum, filter_objects
 from .workframes import DENSE_WORK_LONG_SIDE, WORK_LONG_SIDE, FrameCache, auto_work_long_side, work_size
 
@@ -59,16 +62,23 @@ class TrackConfig:
     sharpen: float = 2.0             # per-step exponent on the soft map (1 = none); counters warping blur
     out_radius: int = 2              # guided filter radius at full size for the final labels (0 = off)
     rigid: float = 1.0               # blend of a per-object homography (fit to the flow inside the object) into the warp
-    # exponent on the per-pixel motion evidence (object vs background homography); 0 = off. Off by default: on
-    # DAVIS first-frame it gains +0.022 mean J (scooter-black +0.16, horsejump-high +0.07) but at 427x240 it
-    # loses drift-straight's car (J 0.30 -> 0.09, with the adaptive colour weight) and car-roundabout -0.046
+    # exponent on the per-pixel motion evidence (object vs background homography) on the chains between two
+    # keyframes; 0 = off. Off there: fusion and the colour vote already correct those chains, and at 0.5 the
+    # evidence moved every-10 J by -0.009 (dog) for +0.001 mean
     motion: float = 0.0
+    # the same on the chains before the first and after the last keyframe, where no second keyframe and no fusion
+    # correct a mask that slid onto the background. With re-detection to catch a car the evidence loses
+    # (drift-straight), DAVIS first-frame mean J +0.024 at 0.5, no sequence down by more than 0.002 (1.0: +0.022,
+    # car-roundabout -0.015); the chains between keyframes keep `motion` (0.5 there: every-10 dog -0.009)
+    motion_one_sided: float = 0.5
     fusion: bool = True              # fuse forward and backward chains (False = forward only where possible)
     min_weight: float = 0.05         # weight floor so a fully untrusted chain still counts a little
     vote: float = 8.0                # colour vote of disagreeing chains: loser weight x exp(-vote * margin); 0 = off
     vote_margin: float = 1.0         # mean log-likelihood margin (nats per pixel) below which a region's vote abstains
     vote_min_px: int = 40            # smallest disagreement region (work-res pixels, after an opening) that votes
     prefetch: int = 12               # flow pairs decoded and computed ahead on a worker thread (0 = inline)
+    # re-detection of an object whose mask collapsed, from its keyframe's appearance (`redetect`)
+    redetect: RedetectConfig = field(default_factory=RedetectConfig)
 
 
 @dataclass
@@ -109,6 +119,7 @@ class Propagator:
         self._ahead: dict[int, Future] = {}  # planned or requested, not yet stored
         self._decoded: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # worker-only: the last decoded frame
         self.motion: dict[int, float] = {}  # pair t -> median flow t -> t+1, as a fraction of the work width
+        self.redetections: list[Event] = []  # every chain's re-detections (positions, objects), for the report
 
     # -- flow -------------------------------------------------------------------------------------------
     def pair(self, t: int) -> tuple[np.ndarray, np.ndarray]:
@@ -193,11 +204,13 @@ class Propagator:
 
     # -- one step of one chain ----------------------------------------------------------------------------
     def advance(self, soft: np.ndarray, acc: np.ndarray, src: int, dst: int,
-                model: ColourModel | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Warp (soft, accumulated trust) from src to dst; untrusted pixels are filled from trusted neighbours."""
+                model: ColourModel | None, motion: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Warp (soft, accumulated trust) from src to dst; untrusted pixels are filled from trusted neighbours.
+        motion: the exponent of the motion evidence (`TrackConfig.motion` when None)."""
         st = self.step(src, dst)
-        if self.cfg.motion > 0:
-            soft = self._motion_evidence(soft, st)
+        motion = self.cfg.motion if motion is None else motion
+        if motion > 0:
+            soft = self._motion_evidence(soft, st, motion)
         warped = st.warp(soft)
         trust = st.trust
         if self.cfg.rigid > 0:
@@ -238,7 +251,7 @@ class Propagator:
             return None
         return H, float(inl.mean())
 
-    def _motion_evidence(self, soft: np.ndarray, st: Step) -> np.ndarray:
+    def _motion_evidence(self, soft: np.ndarray, st: Step, motion: float | None = None) -> np.ndarray:
         """Take out of each object the pixels whose own flow moves with the background rather than the object.
 
         Flow smears a moving object onto the background next to it, and a part of the mask that slid onto the
@@ -252,6 +265,7 @@ class Propagator:
         a shadow), so it never adds a pixel (measured: adding made a swan's mask spread over its wake). Each
         fit counts by its inlier ratio, as in `_rigid`.
         """
+        motion = self.cfg.motion if motion is None else motion
         rng = np.random.default_rng(1)
         bg = self._fit_plane(soft[..., -1] > 0.5, st, rng)
         if bg is None:
@@ -263,7 +277,7 @@ class Propagator:
             fit = self._fit_plane(soft[..., k] > 0.5, st, rng)
             if fit is None:
                 continue
-            a = self.cfg.motion * float(_plane_weight(fit[1]) * _plane_weight(bg[1]))
+            a = motion * float(_plane_weight(fit[1]) * _plane_weight(bg[1]))
             ys, xs = np.nonzero(soft[..., k] > 1e-3)  # below that the object has nothing to lose
             if a <= 0 or not len(xs):
                 continue
@@ -396,6 +410,25 @@ class Propagator:
         known = known.astype(np.float32)
         return soft.copy(), np.stack([known, known], -1), model
 
+    def _watch(self, k: int, soft_known, one_sided: bool) -> Redetector | None:
+        """The re-detection memory of a chain that starts at keyframe k (None when re-detection is off for it)."""
+        rd = self.cfg.redetect
+        if not rd.enabled or not (one_sided or rd.between_keyframes):
+            return None
+        return Redetector(self.cache.work(k), soft_known[0], soft_known[1], self.cfg.redetect, self.cfg.appearance,
+                          self.k)
+
+    def _recheck(self, watch: Redetector | None, soft: np.ndarray, t: int) -> np.ndarray:
+        """A chain's soft map at frame t after its collapsed objects were searched for (`redetect`)."""
+        if watch is None:
+            return soft
+        n = len(watch.events)
+        soft = watch.check(soft, self.cache.work(t), self.cache.bins(t), t)
+        if len(watch.events) > n:
+            self.redetections.extend(watch.events[n:])
+            soft = self.refine(soft, self.cache.work(t))
+        return soft
+
     def _one_sided(self, k: int, order: range, start, arrivals, nxt: bool) -> Iterator[FrameResult]:
         soft, acc, model = self._start(k, start)
         app = self.cfg.appearance
@@ -405,9 +438,11 @@ class Propagator:
             info = heldout_information(self.cache.work(k), start[0], start[1], app)
             if info > app.weight:
                 model = model.reweighted(info)
+        watch = self._watch(k, start, one_sided=True)
         prev = k
         for i, t in enumerate(order):
-            soft, acc, trust = self.advance(soft, acc, prev, t, model)
+            soft, acc, trust = self.advance(soft, acc, prev, t, model, self.cfg.motion_one_sided)
+            soft = self._recheck(watch, soft, t)
             lab = argmax_labels(soft)
             dist = (None, i + 1) if nxt else (i + 1, None)
             yield FrameResult(t, self.labels_full(soft, t), soft=soft, fwd=None if nxt else lab,
@@ -421,9 +456,11 @@ class Propagator:
         fwd: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.pair(a)  # decodes frame a (the colour model's image) with its flow pair
         soft, acc, model = self._start(a, start_a)
+        watch = self._watch(a, start_a, one_sided=False)
         store = np.float32 if b - a <= 100 else np.float16  # long gaps: halve the memory of the stored chain
         for t in range(a + 1, b):
             soft, acc, trust = self.advance(soft, acc, t - 1, t, model)
+            soft = self._recheck(watch, soft, t)
             fwd[t] = (soft.astype(store), acc.astype(store), trust.astype(store))
         if b > a + 1 and (start_b[1] < 1).any():
             s, c, _ = self.advance(soft, acc, b - 1, b, model)
@@ -436,11 +473,13 @@ class Propagator:
                   arrivals) -> Iterator[FrameResult]:
         """The backward chain over the gap (a, b), fused frame by frame with the stored forward chain."""
         soft, acc, model = self._start(b, start_b)
+        watch = self._watch(b, start_b, one_sided=False)
         voting = self.cfg.vote > 0 and model is not None and model_a is not None
         table = joint_log_table([model_a, model]) if voting else None
         span = b - a
         for t in range(b - 1, a, -1):
             soft, acc, trust = self.advance(soft, acc, t + 1, t, model)
+            soft = self._recheck(watch, soft, t)
             sf, cf, tf = (x.astype(np.float32, copy=False) for x in fwd.pop(t))
             lf, lb = argmax_channels(sf), argmax_channels(soft)
             if self.cfg.fusion:

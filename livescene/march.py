@@ -6,14 +6,23 @@ for each asks the probability field who owns it and turns it into each rigid par
 rotation. At fixed states most of that is the same for every sample, and most samples lie in air or behind a
 surface. Here the samples are placed exactly as there (the same proposal levels and inverse-CDF resampling), and:
 - what depends only on the states is computed once per render (`FixedStates`): each rigid part's rest transform
-  (one 3x3 matrix), the probability field's first layer with the states folded into its bias;
+  (one 3x3 matrix) and its hull as one flat table (the gate: one transform and one lookup a sample), the
+  probability field's first layer with the states folded into its bias;
 - in a scene whose objects all move rigidly, a sample outside every part's hull belongs to the background without
-  asking the probability field (the hull gate alone decides it: its object logits are `GATED_LOGIT`);
+  asking the probability field (the hull gate alone decides it: its object logits are `GATED_LOGIT`), and the
+  rendered object logits sum only the other samples' softmax (`pixel_logits`);
+- what depends only on the ray is computed once per ray: the colour net's view-direction half (`RayColor`);
 - samples in cells of the occupancy grid (`livescene.occupancy`) whose densest state is below its threshold are
   not read (density 0): empty-space skipping;
 - each level is marched front to back in segments, and a ray whose transmittance fell below `TERMINATE_T` stops
   (early ray termination); the colour is read only for samples that carry weight.
 Only the skipped samples' density (below the grid threshold) and the light behind 1e-4 transmittance differ.
+
+Not folded, though exact: the k-planes at the few k a render reads (the background's, each state, 0) into feature
+lines per state. On the CPU the lines cost as many grid_sample taps as the planes they replace (stacked as rows), and
+the x and y lines folded into one plane (their product is bilinear) made a K-planes read 15 % faster at 32 and 64
+cells and 9 % slower at 128 (5 % over the field's three scales, 2 % of a render; 1 thread): not worth a second
+code path for the field.
 """
 
 from __future__ import annotations
@@ -23,11 +32,12 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
+import torch.nn.functional as F
 
 from .articulation import KIND_CODES, rotate
 from .config import SamplerConfig
-from .field import GATED_LOGIT, LiveSceneModel, normalise
-from .sampler import pdf_edges, ray_box, render_logits, uniform_edges, volume_weights
+from .field import GATED_LOGIT, LiveSceneModel, normalise, spherical_harmonics
+from .sampler import pdf_edges, ray_box, uniform_edges, volume_weights
 
 TERMINATE_T = 1e-4  # a ray stops once less than this share of its light can still come from further on
 SEGMENT = 8  # samples per ray read between two termination checks
@@ -79,6 +89,7 @@ class FixedStates:
         moves = [rest_transform(model, o, self.values[o]) for o in self.rigid]
         self.rt = torch.stack([m[0] for m in moves]) if moves else None  # (K, 3, 3)
         self.offset = torch.stack([m[1] for m in moves]) if moves else None  # (K, 3)
+        self.hulls = self._hulls()
         # the hull gate decides ownership alone only where no object is read in the world frame and a sample
         # below the rejection threshold is the background's
         self.gate_decides = not self.nonrigid and model.cfg.reject_threshold > 0 and n > 0
@@ -87,21 +98,58 @@ class FixedStates:
                                           torch.full_like(slots, -1e4, dtype=torch.float32)).to(self.values.device)
         self.default_logits[-1] = 0.0  # a sample outside every hull: background, object logits gated
 
+    def _hulls(self) -> list[torch.Tensor | None]:
+        """Per rigid part its hull (`PartMotions.hull`) padded with a border of empty cells and flattened, so a
+        point's cell is one clamped index (`gate`); None for a part without a hull (it may own any point)."""
+        m = self.model.motions
+        return [F.pad(m.hull[o].to(torch.uint8), (1, 1, 1, 1, 1, 1)).bool().reshape(-1) if bool(m.hull_set[o])
+                else None for o in self.rigid]
+
+    def rest(self, j: int, pts: torch.Tensor) -> torch.Tensor:
+        """World points (N, 3) -> the j-th rigid part's rest frame at these states."""
+        return torch.addmm(self.offset[j], pts, self.rt[j])
+
+    def gate(self, pts: torch.Tensor) -> torch.Tensor:
+        """(K, N) bool: inside each rigid part's hull (`PartMotions.inside` of the rest points)."""
+        m = self.model.motions
+        res = m.hull.shape[1]
+        out = []
+        for j, o in enumerate(self.rigid):
+            hull = self.hulls[j]
+            if hull is None:
+                out.append(torch.ones(pts.shape[0], dtype=torch.bool, device=pts.device))
+                continue
+            cell = ((self.rest(j, pts) - m.hull_lo[o]) / (m.hull_hi[o] - m.hull_lo[o]) * res).floor_()
+            c = cell.add_(1).clamp_(0, res + 1).long()  # outside the hull's box: a border cell (empty)
+            out.append(hull[(c[:, 0] * (res + 2) + c[:, 1]) * (res + 2) + c[:, 2]])
+        return torch.stack(out)
+
     def place(self, pts: torch.Tensor, dirs: torch.Tensor, box: tuple[torch.Tensor, torch.Tensor],
               want_logits: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """`LiveSceneModel.place` at these states: (field xyz, view dirs, k, logits or None) of world samples."""
+        p = self.place_sparse(pts, dirs, box, want_logits)
+        logits = None
+        if want_logits:
+            logits = self.default_logits.expand(pts.shape[0], -1).clone() if p.decided is not None else p.logits
+            if p.decided is not None:
+                logits[p.decided] = p.logits
+        return p.xyz, p.view, p.k, logits
+
+    def place_sparse(self, pts: torch.Tensor, dirs: torch.Tensor, box: tuple[torch.Tensor, torch.Tensor],
+                     want_logits: bool = True) -> Placed:
+        """`place` with the logits only of the samples the probability field decides (`Placed.decided`; the
+        others have `default_logits`), so a renderer can leave their softmax out."""
         model = self.model
         xyz = normalise(pts, box)
+        n = pts.shape[0]
         if not self.rigid:
             logits = model.prob.forward_folded(xyz, self.bias_world).masked_fill(~model.slot_mask, -1e4)
-            return xyz, dirs, self._k(logits)[0], logits
-        rest = torch.einsum("nc,kcd->knd", pts, self.rt) + self.offset[:, None, :]  # (K, N, 3)
-        gate = model.motions.inside(self.rigid, rest)
-        n = pts.shape[0]
+            return Placed(xyz, dirs, self._k(logits)[0], logits, None, None)
+        gate = self.gate(pts)
         ia = gate.any(0).nonzero()[:, 0] if self.gate_decides else torch.arange(n, device=pts.device)
         k = torch.full((n,), float(model.background_k), device=pts.device, dtype=pts.dtype)
         group = torch.zeros(n, dtype=torch.long, device=pts.device)
-        logits = self.default_logits.expand(n, -1).clone() if want_logits else None
+        la = None
         if len(ia):  # the samples whose owner the probability field decides
             la = model.prob.forward_folded(xyz[ia], self.bias_world)
             la[:, self.rigid] = GATED_LOGIT
@@ -109,23 +157,24 @@ class FixedStates:
             sel = [g.nonzero()[:, 0] for g in gate_a]
             sizes = [len(x) for x in sel]
             if sum(sizes):
-                inputs = torch.cat([normalise(rest[j][ia[x]], box) for j, x in enumerate(sel)])
+                inputs = torch.cat([normalise(self.rest(j, pts[ia[x]]), box) for j, x in enumerate(sel)])
                 raw = model.prob.forward_folded(inputs, self.bias_rest).split(sizes)
                 for j, o in enumerate(self.rigid):
                     la[sel[j], o] = raw[j][:, o]
             la = la.masked_fill(~model.slot_mask, -1e4)
             k[ia], group[ia] = self._k(la)
-            if logits is not None:
-                logits[ia] = la
         view = dirs
-        if bool((group > 0).any()):
+        moved = (group > 0).nonzero()[:, 0]
+        if len(moved):
             xyz, view = xyz.clone(), dirs.clone()
             for j in range(len(self.rigid)):
-                m = (group == j + 1).nonzero()[:, 0]
+                m = moved[group[moved] == j + 1]
                 if len(m):
-                    xyz[m] = normalise(rest[j][m], box)
+                    xyz[m] = normalise(self.rest(j, pts[m]), box)
                     view[m] = dirs[m] @ self.rt[j]
-        return xyz, view, k, logits
+        if la is None:
+            la = self.default_logits.new_zeros(0, self.default_logits.shape[0])
+        return Placed(xyz, view, k, la if want_logits else None, ia if self.gate_decides else None, moved)
 
     def _k(self, logits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         """(k (N,), owner group (N,): 0 world, j + 1 the j-th rigid part) by `select_k`'s rule."""
@@ -140,6 +189,19 @@ class FixedStates:
         if model.cfg.part_k == "rest":
             k = torch.where(group > 0, torch.zeros_like(k), k)
         return k, group
+
+
+@dataclass
+class Placed:
+    """`FixedStates.place_sparse`: where the fields read each sample, and the logits of those the probability
+    field decided (`decided`: their sample indices; None = every sample's logits)."""
+
+    xyz: torch.Tensor  # (N, 3) field coordinates
+    view: torch.Tensor  # (N, 3) view directions in the owner's frame
+    k: torch.Tensor  # (N,)
+    logits: torch.Tensor | None  # (len(decided) or N, C), None when not asked for
+    decided: torch.Tensor | None  # (D,) sample indices of `logits`; None: all samples
+    moved: torch.Tensor | None  # (P,) samples read in a rigid part's frame (their view turned); None: none can be
 
 
 Reader = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]  # (points (P, 3), ray index (P,)) -> density (P,)
@@ -207,12 +269,12 @@ def march_rays(model: LiveSceneModel, fixed: FixedStates, origins: torch.Tensor,
         w = volume_weights(sigma, edges)
         n_next = cfg.proposal_samples[level + 1] if level + 1 < len(model.proposals) else cfg.samples
         edges = pdf_edges(edges, w, n_next, None)
-    kept: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (geo features, view dirs, logits) per read
+    kept: list[tuple[torch.Tensor, Placed]] = []  # (the sigma net's output, placement) per read
 
     def read_final(pts, ri):
-        xyz, view, k, logits = fixed.place(pts, dirs[ri], box, want_logits=with_logits)
-        sigma, h = model.field.density(xyz, k)
-        kept.append((h, view, logits))
+        placed = fixed.place_sparse(pts, dirs[ri], box, want_logits=with_logits)
+        sigma, h = model.field.density(placed.xyz, placed.k)
+        kept.append((h, placed))
         return sigma
 
     sigma, read_at = march_level(origins, dirs, edges, read_final, occupied, stats, terminate)
@@ -220,18 +282,68 @@ def march_rays(model: LiveSceneModel, fixed: FixedStates, origins: torch.Tensor,
     w = volume_weights(sigma, edges)
     acc = w.sum(-1)
     rgb = torch.zeros(r, s, 3, device=w.device, dtype=w.dtype)
+    term = RayColor(model, dirs)
     n_cls = model.slot_mask.shape[0]
-    logits = torch.zeros(r, s, n_cls, device=w.device, dtype=w.dtype) if with_logits else None
-    for (ri, si), (h, view, lg) in zip(read_at, kept):
-        if logits is not None:
-            logits[ri, si] = lg
-        heavy = (w[ri, si] > COLOR_MIN_WEIGHT).nonzero()[:, 0]
+    mixed = torch.zeros(r, n_cls, device=w.device, dtype=w.dtype) if with_logits else None  # sum of w x probs (logits)
+    decided_w = torch.zeros(r, device=w.device, dtype=w.dtype)  # ... the weight that has its own logits
+    for (ri, si), (h, placed) in zip(read_at, kept):
+        ws = w[ri, si]
+        if mixed is not None:
+            rows = ri if placed.decided is None else ri[placed.decided]
+            wd = ws if placed.decided is None else ws[placed.decided]
+            lg = placed.logits if model.mask_render == "logits" else torch.softmax(placed.logits, -1)
+            mixed.index_add_(0, rows, wd[:, None] * lg)
+            decided_w.index_add_(0, rows, wd)
+        heavy = (ws > COLOR_MIN_WEIGHT).nonzero()[:, 0]
         if len(heavy):
-            rgb[ri[heavy], si[heavy]] = model.field.color(h[heavy], view[heavy])
+            rgb[ri[heavy], si[heavy]] = term.color(h[heavy], ri[heavy], heavy, placed)
             if stats is not None:
                 stats.colored += len(heavy)
     mid = 0.5 * (edges[:, 1:] + edges[:, :-1])
     color = (w[..., None] * rgb).sum(1) + (1 - acc)[:, None] * model.background()
     depth = (w * mid).sum(-1) + (1 - acc) * far
-    out_logits = render_logits(logits, w, model.slot_mask, model.mask_render) if logits is not None else None
+    out_logits = None
+    if mixed is not None:  # the samples without logits of their own have `default_logits`
+        undecided = (acc - decided_w).clamp(min=0)[:, None]
+        default = fixed.default_logits if model.mask_render == "logits" else torch.softmax(fixed.default_logits, -1)
+        out_logits = pixel_logits(mixed + undecided * default, acc, model.slot_mask, model.mask_render)
     return {"rgb": color, "depth": depth, "acc": acc, "logits": out_logits}
+
+
+def pixel_logits(mixed: torch.Tensor, acc: torch.Tensor, slot_mask: torch.Tensor, mode: str) -> torch.Tensor:
+    """`sampler.render_logits` (weights detached) from its weighted sum over a ray's samples `mixed` (R, C): of
+    the probabilities in mode "probs", of the logits in mode "logits"."""
+    if mode == "logits":
+        return mixed.masked_fill(~slot_mask, -1e4)
+    p = torch.cat([mixed[:, :-1], mixed[:, -1:] + (1 - acc[:, None]).clamp(min=0)], -1)
+    return torch.log(p.clamp(min=1e-6)).masked_fill(~slot_mask, -1e4)
+
+
+class RayColor:
+    """The colour net with its view-direction half done once per ray: its first layer reads [SH(dir), geo
+    features], and the samples of a ray share the direction, so W_sh SH(dir) + bias is a per-ray term (a sample
+    read in a rigid part's frame, its direction turned, gets its own). `RadianceField.color` to float rounding."""
+
+    def __init__(self, model: LiveSceneModel, dirs: torch.Tensor):
+        self.field = model.field
+        first = self.field.color_net[0]
+        self.n_sh = self.field.bands ** 2
+        self.w_sh, self.w_geo = first.weight[:, : self.n_sh], first.weight[:, self.n_sh:]
+        self.bias = first.bias
+        self.per_ray = self._sh_term(dirs)  # (R, hidden)
+
+    def _sh_term(self, dirs: torch.Tensor) -> torch.Tensor:
+        return torch.addmm(self.bias, spherical_harmonics(dirs, self.field.bands), self.w_sh.t())
+
+    def color(self, h: torch.Tensor, rays: torch.Tensor, which: torch.Tensor, placed: Placed) -> torch.Tensor:
+        """RGB (P, 3) of samples with sigma-net outputs h (P, 1 + geo) on rays `rays` (P,); `which` (P,): their
+        positions in `placed` (whose `moved` samples read a turned direction)."""
+        pre = self.per_ray[rays]
+        if placed.moved is not None and len(placed.moved):
+            turned = torch.zeros(len(placed.view), dtype=torch.bool, device=h.device)
+            turned[placed.moved] = True
+            sel = turned[which].nonzero()[:, 0]
+            if len(sel):
+                pre[sel] = self._sh_term(placed.view[which[sel]])
+        pre = torch.addmm(pre, h[:, 1:], self.w_geo.t())
+        return torch.sigmoid(self.field.color_net[1:](pre))

@@ -140,14 +140,15 @@ def render_view(run, c2w_gl: np.ndarray, intrinsics: Intrinsics, states: StateSp
     `traced` (pixels traced, the others interpolated) and `rays_reused` (from the last image of this camera).
 
     fast: the fast renderer (`livescene.adaptive` over `livescene.march`: a coarse lattice of pixels traced and
-    flat regions interpolated, empty-space skipping with the run's occupancy grid, early ray termination,
-    state-dependent work done once per call, pixels no moving part can reach reused across states); False = the
-    exact renderer, every sample of every level of every pixel read, for comparison. occupancy: None = the run's
-    grid (`occupancy.grid_for`: the checkpoint's, else cached next to it or built on first use; none for a model
-    being trained), False = no grid, or an `OccupancyGrid`. threshold: the grid's density threshold (default its
-    `threshold()`). terminate: transmittance at which a ray stops (default `march.TERMINATE_T`). tolerance: how
-    far a pixel's traced neighbours may disagree for it to be interpolated (default `adaptive.TOLERANCE`; 0 traces
-    every pixel); stride: pixels between the coarsest traced ones (default `adaptive.STRIDE`).
+    flat regions and gradients interpolated, empty-space skipping with the run's occupancy grid, early ray
+    termination, state-dependent work done once per call, pixels whose rays meet no moved part's hull reused
+    across states); False = the exact renderer, every sample of every level of every pixel read, for comparison.
+    occupancy: None = the run's grid (`occupancy.grid_for`: the checkpoint's, else cached next to it or built on
+    first use; none for a model being trained), False = no grid, or an `OccupancyGrid`. threshold: the grid's
+    density threshold (default its `threshold()`). terminate: transmittance at which a ray stops (default
+    `march.TERMINATE_T`). tolerance: how far a pixel's traced neighbours may disagree for it to be interpolated
+    (default `adaptive.TOLERANCE`; 0 traces every pixel); stride: pixels between the coarsest traced ones
+    (default `adaptive.STRIDE`).
     Thread-safe for concurrent calls on one run only if they do not build its grid at the same time."""
     t_start = _time.perf_counter()
     model = run.model
@@ -168,7 +169,9 @@ def render_view(run, c2w_gl: np.ndarray, intrinsics: Intrinsics, states: StateSp
     finally:
         if was_training:
             model.train()
-    z_scale = camera_rays(c2w_gl, intrinsics, pixel_directions(intrinsics))[2]
+    z_scale = res.get("z_scale")
+    if z_scale is None:
+        z_scale = camera_rays(c2w_gl, intrinsics, pixel_directions(intrinsics))[2]
     return {"rgb": res["rgb"].view(h, w, 3).numpy(),
             "depth": (res["depth"].numpy() * z_scale).reshape(h, w).astype(np.float32),
             "acc": res["acc"].view(h, w).numpy(),

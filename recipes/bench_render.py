@@ -6,6 +6,7 @@ each frame (and of each against the recorded frame, where the dataset has one).
 
     python recipes/bench_render.py RUN --out bench            # 2 held-out views per size, 3 tolerances at 320x240
     python recipes/bench_render.py RUN --quick --out bench    # 1 view at 160x120 and 320x240
+    python recipes/bench_render.py RUN --sizes 320x240 --threads 1 --out bench   # one size, one thread
 
 Writes bench/render.json ({"runs": [...], "summary": {...}}) and bench/render.png (seconds per frame against PSNR
 to the exact render, per size and interpolation tolerance), prints a table. The grid is the run's own (saved with its checkpoint)
@@ -155,6 +156,8 @@ def main() -> int:
         p.add_argument("run", type=Path, help="run folder of `livescene train`"),
         p.add_argument("--frames", type=int, default=0, help="held-out views per size (default 2, --quick 1)"),
         p.add_argument("--threads", type=int, default=0, help="torch threads (0 = as the CLI chooses)"),
+        p.add_argument("--sizes", default="", help=f"comma-separated sizes of {', '.join(SIZES)} (default: all; "
+                                                   f"--quick: the first two)"),
         p.add_argument("--device", default="auto")))
     import torch
 
@@ -169,7 +172,11 @@ def main() -> int:
     had_grid = run.occupancy is not None
     grid = grid_for(run)
     grid_s = time.perf_counter() - t0
-    sizes = ["160x120", "320x240"] if args.quick else list(SIZES)
+    sizes = [x.strip() for x in args.sizes.split(",") if x.strip()] or (["160x120", "320x240"] if args.quick
+                                                                         else list(SIZES))
+    unknown = [x for x in sizes if x not in SIZES]
+    if unknown:
+        raise SystemExit(f"--sizes: unknown size {unknown[0]!r}; choose from {', '.join(SIZES)}")
     n = args.frames or (1 if args.quick else 2)
     pool = run.views.held_out or run.views.train
     frames = pick_frames(pool, n)

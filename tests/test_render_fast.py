@@ -277,8 +277,8 @@ def test_eval_and_render_report_their_speed(rigid_run, tmp_path):
 
 
 def test_a_state_change_rerenders_only_the_rays_a_part_can_reach(tmp_path):
-    """With every object moving rigidly, the same camera at another state re-renders only the rays that meet a
-    cell some part's hull can reach (`OccupancyGrid.reach`, `adaptive.reach_pixels`) and reuses the rest: the
+    """With every object moving rigidly, the same camera at another state re-renders only the rays that meet
+    the moved part's hull at the old or the new state (`adaptive.changed_pixels`) and reuses the rest: the
     same image as a fresh one when every pixel is traced, within the interpolation's error when not."""
     from types import SimpleNamespace
 

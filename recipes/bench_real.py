@@ -42,6 +42,8 @@ def _extra(p) -> None:
     p.add_argument("--every", type=int, default=None, help="one frame per EVERY source frames (default 2, quick 4)")
     p.add_argument("--long-side", type=int, default=None, help="image long side (default 1072, quick 800)")
     p.add_argument("--threads", type=int, default=2, help="COLMAP threads (default 2)")
+    p.add_argument("--train-threads", type=int, default=0, help="`livescene train --threads` (default 0: the trainer "
+                   "measures; a fixed 2 on a busy machine trained 2.5x slower than 1)")
     p.add_argument("--reuse", action="store_true", help="keep an existing OUT/real_ds (re-measure motions only)")
     p.add_argument("--train-minutes", type=float, default=0.0, help="then train this long (cpu preset) and measure "
                    "held-out PSNR / SSIM and the lid's pixel change between states 0 and 1 (default 0: skip)")
@@ -112,7 +114,8 @@ def run_training(ds: Path, out: Path, minutes: float, threads: int) -> dict:
                     "--max-frames", "8"], check=True)
     ev = json.loads((out / "real_eval.json").read_text())
     flat = {k: v for k, v in ev.items() if isinstance(v, (int, float))}
-    return {"train_s": train_s, **{k: flat[k] for k in sorted(flat) if "psnr" in k or "ssim" in k},
+    return {"train_s": train_s, "steps": ev.get("step"),
+            **{k: flat[k] for k in sorted(flat) if "psnr" in k or "ssim" in k},
             "part_moves": part_change(run)}
 
 
@@ -176,7 +179,7 @@ def main() -> None:
     if args.train_minutes > 0:  # with the motion of the first route in articulation.json (re-measured last)
         if len(runs) > 1:
             run_motions(ds, args.threads, runs[0]["variant"])
-        runs[0].update(run_training(ds, args.out, args.train_minutes, args.threads))
+        runs[0].update(run_training(ds, args.out, args.train_minutes, args.train_threads))
     meta = {"annotations": str(FIXTURES.relative_to(REPO))}
     if len(runs) >= 2:
         meta["route_agreement"] = agreement(runs[0], runs[1])

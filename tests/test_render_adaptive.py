@@ -26,18 +26,24 @@ def _image(h: int, w: int) -> torch.Tensor:
     return torch.cat([rgb, torch.ones(h, w, 1), depth], -1)
 
 
+def recording_tracer(flat: torch.Tensor):
+    """(trace, calls): a tracer reading pixels of `flat` (P, F) that records how many it was asked for."""
+    calls: list[int] = []
+
+    def trace(idx):
+        calls.append(len(idx))
+        return flat[idx]
+
+    return trace, calls
+
+
 def test_refine_interpolates_flat_regions_and_traces_edges():
     h, w, stride = 48, 64, 4
     hp, wp = padded(h, stride), padded(w, stride)
     assert (hp - 1) % stride == 0 and hp >= h and (wp - 1) % stride == 0 and wp >= w
     truth = _image(hp, wp)
     flat = truth.reshape(hp * wp, -1)
-    calls = []
-
-    def trace(idx):
-        calls.append(len(idx))
-        return flat[idx]
-
+    trace, calls = recording_tracer(flat)
     values, traced = refine(hp, wp, stride, trace, agree_by(0.02))
     assert sum(calls) == int(traced.sum())  # each traced pixel traced once
     values, traced = values.view(hp, wp, -1), traced.view(hp, wp)

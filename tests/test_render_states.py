@@ -13,6 +13,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_livescene_rigid import TOY_DOOR  # noqa: E402
+from test_render_adaptive import recording_tracer  # noqa: E402
 from test_render_fast import cube_model  # noqa: E402
 
 from livescene.config import ModelConfig  # noqa: E402
@@ -158,12 +159,7 @@ def test_refine_interpolates_gradients_by_their_second_differences():
     step = torch.where(x >= 0.75 * wp, 0.5, 0.0)
     truth = torch.stack([shade + step, shade, shade * 0.5, torch.ones_like(x), 1.0 + 0 * x], -1)
     flat = truth.reshape(hp * wp, -1)
-    calls = []
-
-    def trace(idx):
-        calls.append(len(idx))
-        return flat[idx]
-
+    trace, _ = recording_tracer(flat)
     plain, traced_plain = refine(hp, wp, stride, trace, agree_by(0.04))
     values, traced = refine(hp, wp, stride, trace, agree_by(0.04), "cpu", smooth_by(0.08))
     assert traced.float().mean() < 0.6 * traced_plain.float().mean()  # the gradient is interpolated

@@ -236,6 +236,7 @@ def test_grid_skips_clear_air_and_keeps_the_render():
     fast = march_rays(model, fixed, origins, dirs, box, cfg, grid.tester(), True, skipped)
     plain = march_rays(model, fixed, origins, dirs, box, cfg, None, True, full)
     assert _psnr(fast["rgb"].numpy(), exact.rgb.numpy()) > 40.0
+    assert _psnr(plain["rgb"].numpy(), exact.rgb.numpy()) > 40.0  # without the grid: early termination alone
     assert torch.allclose(fast["acc"], exact.acc, atol=1e-3)
     hit = exact.acc > 0.5
     assert 0.1 < hit.float().mean() < 0.9  # some rays hit the cube, some pass by

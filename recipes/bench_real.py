@@ -19,7 +19,8 @@ is horizontal: about 90 degrees).
 
 `--train-minutes N` then trains (cpu preset, N minutes) with the first route's motion and adds held-out PSNR / SSIM
 (`livescene eval`, 8 frames) and, per held-out camera, the share of the lid's pixels whose rendered colour changes
-between states 0 and 1. Not measured: whether the hand shows (no truth of what is behind it).
+between states 0 and 1, and whether the hand shows (`hand_shows`: PSNR against the captured frames inside the
+transient layer's pixels and elsewhere; a scene that baked the hand in reproduces it there).
 """
 
 from __future__ import annotations
@@ -116,7 +117,50 @@ def run_training(ds: Path, out: Path, minutes: float, threads: int) -> dict:
     flat = {k: v for k, v in ev.items() if isinstance(v, (int, float))}
     return {"train_s": train_s, "steps": ev.get("step"),
             **{k: flat[k] for k in sorted(flat) if "psnr" in k or "ssim" in k},
-            "part_moves": part_change(run)}
+            "part_moves": part_change(run), **hand_shows(run)}
+
+
+def hand_shows(run_dir: Path, most: int = 6, scale: float = 0.25, hands: Path | None = None) -> dict:
+    """Does the trained scene draw the hand? On the training frames where the transient layer covers most, each
+    rendered at its own learned states: PSNR against the captured frame inside the hand's pixels and elsewhere. A
+    scene that baked the hand in reproduces it (as close as elsewhere); one that left it out draws what is behind
+    it, far from the captured hand. There is no truth of what is behind, so this says whether the hand shows, not
+    how well the scene behind it is drawn. hands: a dataset of the same frames whose transient layer marks the
+    hand (default the run's own; for a run trained without the layer, the one with it)."""
+    import cv2
+
+    from interreal.transients import read_transient
+    from livescene.render import learned_frame_states, render_view
+    from livescene.run import load_run
+
+    run = load_run(run_dir, device="cpu")
+    v = run.views
+    ds = v.dataset
+    hands = hands or ds.root
+    share = {}
+    for i in v.train:
+        m = read_transient(hands, ds.frames[i].fid)
+        if m is not None and m.any():
+            share[i] = float(m.mean())
+    if not share:
+        return {"hand_frames": 0}
+    states = learned_frame_states(run)
+    inside, outside = [], []
+    for i in sorted(share, key=lambda j: -share[j])[:most]:
+        intr = v.intrinsics[i]
+        w, h = max(8, int(intr.w * scale)), max(8, int(intr.h * scale))
+        out = render_view(run, v.c2w_gl[i], intr.scaled(w, h), states[i], time=float(v.times[i]))["rgb"]
+        img = cv2.resize(ds.load_image(ds.frames[i]), (w, h), interpolation=cv2.INTER_AREA).astype(np.float32) / 255
+        hand = cv2.resize(read_transient(hands, ds.frames[i].fid).astype(np.uint8), (w, h),
+                          interpolation=cv2.INTER_NEAREST) > 0
+        err = ((out - img) ** 2).mean(-1)
+        inside.append(float(err[hand].mean()))
+        outside.append(float(err[~hand].mean()))
+
+    def db(e: list[float]) -> float:
+        return round(float(-10 * np.log10(max(np.mean(e), 1e-10))), 2)
+
+    return {"hand_frames": len(inside), "psnr_at_hand": db(inside), "psnr_elsewhere": db(outside)}
 
 
 def part_change(run_dir: Path, scale: float = 0.25, tol: float = 0.1) -> list[float]:

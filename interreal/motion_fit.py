@@ -162,13 +162,18 @@ def consensus(rot: np.ndarray, tries: int = 12) -> tuple[int, np.ndarray, np.nda
     return best[0], best[2], best[3]
 
 
+def spread_deg(rot: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+    """(F,) degrees each rotation (F, 3, 3) turns from the mean orientation (of the `keep` ones, default all)."""
+    rots = Rotation.from_matrix(rot)
+    return np.degrees((rots * (rots if keep is None else rots[keep]).mean().inv()).magnitude())
+
+
 def still_frames(rot: np.ndarray) -> np.ndarray:
     """(F,) bool: frames whose rotation stays within max(SLIDE_MAX_DEG, 3 x the median) of the mean orientation
     (recomputed on the kept frames, so a flipped frame does not pull it)."""
-    rots = Rotation.from_matrix(rot)
     keep = np.ones(len(rot), bool)
     for _ in range(3):
-        dev = np.degrees((rots * rots[keep].mean().inv()).magnitude())
+        dev = spread_deg(rot, keep)
         keep = dev <= max(SLIDE_MAX_DEG, 3 * float(np.median(dev)))
     return keep
 
@@ -284,15 +289,8 @@ def choose(hinge: Fit, slide: Fit, pv: PartViews) -> tuple[Fit, dict[str, Any]]:
 
 def rest_stretches(states: np.ndarray, known: np.ndarray, least: int = 3) -> list[np.ndarray]:
     """Runs (positions) of at least `least` consecutive frames whose known state is one value: the part rests."""
-    runs, i = [], 0
-    while i < len(states):
-        j = i
-        while known[i] and j + 1 < len(states) and known[j + 1] and abs(states[j + 1] - states[i]) < 1e-6:
-            j += 1
-        if known[i] and j - i + 1 >= least:
-            runs.append(np.arange(i, j + 1))
-        i = j + 1
-    return runs
+    cut = np.flatnonzero(~known[1:] | ~known[:-1] | (np.abs(np.diff(states)) >= 1e-6)) + 1
+    return [r for r in np.split(np.arange(len(states)), cut) if len(r) >= least and known[r[0]]]
 
 
 def turns_with_camera(pv: PartViews, states: np.ndarray, known: np.ndarray) -> dict[str, Any] | None:
@@ -305,18 +303,14 @@ def turns_with_camera(pv: PartViews, states: np.ndarray, known: np.ndarray) -> d
     if pv.cam_rot is None:
         return None
     runs = rest_stretches(states, known)
-    if sum(len(r) for r in runs) < REST_FRAMES:
+    resting = sum(len(r) for r in runs)
+    if resting < REST_FRAMES:
         return None
-
-    def spread(rots: np.ndarray) -> np.ndarray:
-        r = Rotation.from_matrix(rots)
-        return np.degrees((r * r.mean().inv()).magnitude())
-
-    part = float(np.median(np.concatenate([spread(pv.rot[r]) for r in runs])))
-    cam = float(np.median(np.concatenate([spread(pv.cam_rot[r]) for r in runs])))
+    part = float(np.median(np.concatenate([spread_deg(pv.rot[r]) for r in runs])))
+    cam = float(np.median(np.concatenate([spread_deg(pv.cam_rot[r]) for r in runs])))
     if cam < REST_NOISE_DEG:
         return None
-    return {"rest_frames": int(sum(len(r) for r in runs)), "rest_turn_deg": round(part, 2),
+    return {"rest_frames": int(resting), "rest_turn_deg": round(part, 2),
             "camera_turn_deg": round(cam, 2), "follows_camera": bool(part > max(FOLLOW * cam, REST_NOISE_DEG))}
 
 

@@ -179,10 +179,12 @@ def pnp_views(grays: dict[int, np.ndarray], masks: dict[int, np.ndarray], c2w: d
     fig.update(located=len(frames), median_inliers=int(np.median([located[i][1] for i in frames])) if frames else 0)
     if len(frames) < 3:
         return None, fig
-    rot = np.stack([c2w[i][:3, :3] @ located[i][0][:, :3] for i in frames])
-    u = np.stack([c2w[i][:3, :3] @ (located[i][0][:, :3] @ point + located[i][0][:, 3]) for i in frames])
+    cam = np.stack([c2w[i][:3, :3] for i in frames])
+    pose = np.stack([located[i][0] for i in frames])  # (F, 3, 4) camera from the reference's world points
+    rot = cam @ pose[:, :, :3]
+    u = np.einsum("fij,fj->fi", cam, pose[:, :, :3] @ point + pose[:, :, 3])
     centre = np.stack([c2w[i][:3, 3] for i in frames])
-    return PartViews(np.asarray(frames), rot, u, centre, np.stack([c2w[i][:3, :3] for i in frames])), fig
+    return PartViews(np.asarray(frames), rot, u, centre, cam), fig
 
 
 def reference_frames(positions: list[int], states: np.ndarray, known: np.ndarray, labelled: np.ndarray,

@@ -15,6 +15,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import torch
+import torch.nn.functional as F
 from scipy.ndimage import binary_dilation
 from torch import nn
 
@@ -70,21 +71,27 @@ class PartMotions(nn.Module):
             self.hull_hi[obj] = torch.as_tensor(hi, dtype=torch.float32)
             self.hull[obj] = torch.as_tensor(occ, dtype=torch.bool)
 
-    def inside(self, objects: list[int], rest: torch.Tensor) -> torch.Tensor:
-        """rest (K, N, 3): each listed object's rest-frame points -> (K, N) bool, True where that object may
-        own the point (inside its hull, or everywhere when it has none)."""
-        out = []
+    def padded_hull(self, obj: int) -> torch.Tensor | None:
+        """Object `obj`'s hull with a border of empty cells, flattened: a point's cell is then one clamped index
+        (`inside_one`), no bounds test. None when it has no hull (it may own any point)."""
+        if not bool(self.hull_set[obj]):
+            return None
+        return F.pad(self.hull[obj].to(torch.uint8), (1, 1, 1, 1, 1, 1)).bool().reshape(-1)
+
+    def inside_one(self, obj: int, rest: torch.Tensor, padded: torch.Tensor | None = None) -> torch.Tensor:
+        """rest (N, 3): object `obj`'s rest-frame points -> (N,) bool, True where it may own the point (inside its
+        hull, or everywhere when it has none). padded: its `padded_hull`, when the caller keeps it."""
+        padded = self.padded_hull(obj) if padded is None else padded
+        if padded is None:
+            return torch.ones(rest.shape[0], dtype=torch.bool, device=rest.device)
         res = self.hull.shape[1]
-        for j, o in enumerate(objects):
-            p = rest[j]
-            if not bool(self.hull_set[o]):
-                out.append(torch.ones(p.shape[0], dtype=torch.bool, device=p.device))
-                continue
-            cell = ((p - self.hull_lo[o]) / (self.hull_hi[o] - self.hull_lo[o]) * res).floor().long()
-            ok = ((cell >= 0) & (cell < res)).all(-1)
-            c = cell.clamp(0, res - 1)
-            out.append(ok & self.hull[o][c[:, 0], c[:, 1], c[:, 2]])
-        return torch.stack(out)
+        cell = ((rest.detach() - self.hull_lo[obj]) / (self.hull_hi[obj] - self.hull_lo[obj]) * res).floor_()
+        c = cell.add_(1).clamp_(0, res + 1).long()  # outside the hull's box: a border cell (empty)
+        return padded[(c[:, 0] * (res + 2) + c[:, 1]) * (res + 2) + c[:, 2]]
+
+    def inside(self, objects: list[int], rest: torch.Tensor) -> torch.Tensor:
+        """rest (K, N, 3): each listed object's rest-frame points -> (K, N) bool (`inside_one`)."""
+        return torch.stack([self.inside_one(o, rest[j]) for j, o in enumerate(objects)])
 
     def rigid(self, n_objects: int) -> list[int]:
         """The object slots (< n_objects) that move rigidly."""

@@ -32,12 +32,11 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
-import torch.nn.functional as F
 
 from .articulation import KIND_CODES, rotate
 from .config import SamplerConfig
 from .field import GATED_LOGIT, LiveSceneModel, normalise, spherical_harmonics
-from .sampler import pdf_edges, ray_box, uniform_edges, volume_weights
+from .sampler import pdf_edges, pixel_logits, ray_box, uniform_edges, volume_weights
 
 TERMINATE_T = 1e-4  # a ray stops once less than this share of its light can still come from further on
 SEGMENT = 8  # samples per ray read between two termination checks
@@ -89,7 +88,7 @@ class FixedStates:
         moves = [rest_transform(model, o, self.values[o]) for o in self.rigid]
         self.rt = torch.stack([m[0] for m in moves]) if moves else None  # (K, 3, 3)
         self.offset = torch.stack([m[1] for m in moves]) if moves else None  # (K, 3)
-        self.hulls = self._hulls()
+        self.hulls = [model.motions.padded_hull(o) for o in self.rigid]  # padded once per render
         # the hull gate decides ownership alone only where no object is read in the world frame and a sample
         # below the rejection threshold is the background's
         self.gate_decides = not self.nonrigid and model.cfg.reject_threshold > 0 and n > 0
@@ -98,31 +97,14 @@ class FixedStates:
                                           torch.full_like(slots, -1e4, dtype=torch.float32)).to(self.values.device)
         self.default_logits[-1] = 0.0  # a sample outside every hull: background, object logits gated
 
-    def _hulls(self) -> list[torch.Tensor | None]:
-        """Per rigid part its hull (`PartMotions.hull`) padded with a border of empty cells and flattened, so a
-        point's cell is one clamped index (`gate`); None for a part without a hull (it may own any point)."""
-        m = self.model.motions
-        return [F.pad(m.hull[o].to(torch.uint8), (1, 1, 1, 1, 1, 1)).bool().reshape(-1) if bool(m.hull_set[o])
-                else None for o in self.rigid]
-
     def rest(self, j: int, pts: torch.Tensor) -> torch.Tensor:
         """World points (N, 3) -> the j-th rigid part's rest frame at these states."""
         return torch.addmm(self.offset[j], pts, self.rt[j])
 
     def gate(self, pts: torch.Tensor) -> torch.Tensor:
-        """(K, N) bool: inside each rigid part's hull (`PartMotions.inside` of the rest points)."""
+        """(K, N) bool: inside each rigid part's hull (`PartMotions.inside_one` of the rest points)."""
         m = self.model.motions
-        res = m.hull.shape[1]
-        out = []
-        for j, o in enumerate(self.rigid):
-            hull = self.hulls[j]
-            if hull is None:
-                out.append(torch.ones(pts.shape[0], dtype=torch.bool, device=pts.device))
-                continue
-            cell = ((self.rest(j, pts) - m.hull_lo[o]) / (m.hull_hi[o] - m.hull_lo[o]) * res).floor_()
-            c = cell.add_(1).clamp_(0, res + 1).long()  # outside the hull's box: a border cell (empty)
-            out.append(hull[(c[:, 0] * (res + 2) + c[:, 1]) * (res + 2) + c[:, 2]])
-        return torch.stack(out)
+        return torch.stack([m.inside_one(o, self.rest(j, pts), self.hulls[j]) for j, o in enumerate(self.rigid)])
 
     def place(self, pts: torch.Tensor, dirs: torch.Tensor, box: tuple[torch.Tensor, torch.Tensor],
               want_logits: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
@@ -308,15 +290,6 @@ def march_rays(model: LiveSceneModel, fixed: FixedStates, origins: torch.Tensor,
         default = fixed.default_logits if model.mask_render == "logits" else torch.softmax(fixed.default_logits, -1)
         out_logits = pixel_logits(mixed + undecided * default, acc, model.slot_mask, model.mask_render)
     return {"rgb": color, "depth": depth, "acc": acc, "logits": out_logits}
-
-
-def pixel_logits(mixed: torch.Tensor, acc: torch.Tensor, slot_mask: torch.Tensor, mode: str) -> torch.Tensor:
-    """`sampler.render_logits` (weights detached) from its weighted sum over a ray's samples `mixed` (R, C): of
-    the probabilities in mode "probs", of the logits in mode "logits"."""
-    if mode == "logits":
-        return mixed.masked_fill(~slot_mask, -1e4)
-    p = torch.cat([mixed[:, :-1], mixed[:, -1:] + (1 - acc[:, None]).clamp(min=0)], -1)
-    return torch.log(p.clamp(min=1e-6)).masked_fill(~slot_mask, -1e4)
 
 
 class RayColor:

@@ -169,9 +169,7 @@ def render_view(run, c2w_gl: np.ndarray, intrinsics: Intrinsics, states: StateSp
     finally:
         if was_training:
             model.train()
-    z_scale = res.get("z_scale")
-    if z_scale is None:
-        z_scale = camera_rays(c2w_gl, intrinsics, pixel_directions(intrinsics))[2]
+    z_scale = res["z_scale"]
     return {"rgb": res["rgb"].view(h, w, 3).numpy(),
             "depth": (res["depth"].numpy() * z_scale).reshape(h, w).astype(np.float32),
             "acc": res["acc"].view(h, w).numpy(),
@@ -183,8 +181,9 @@ def render_view(run, c2w_gl: np.ndarray, intrinsics: Intrinsics, states: StateSp
 
 def _render_exact(run, c2w_gl: np.ndarray, intrinsics: Intrinsics, values: torch.Tensor, chunk: int
                   ) -> dict[str, torch.Tensor]:
-    """`sampler.render_rays` over every pixel: rgb (H*W, 3), depth along the ray, acc, probs (H*W, M + 1)."""
-    origins, dirs, _ = camera_rays(c2w_gl, intrinsics, pixel_directions(intrinsics))
+    """`sampler.render_rays` over every pixel: rgb (H*W, 3), depth along the ray, acc, probs (H*W, M + 1), and the
+    rays' depth scale (`camera_rays`)."""
+    origins, dirs, z_scale = camera_rays(c2w_gl, intrinsics, pixel_directions(intrinsics))
     o_all = torch.from_numpy(np.ascontiguousarray(origins)).to(run.device)
     d_all = torch.from_numpy(dirs).to(run.device)
     m = run.model.n_objects
@@ -198,7 +197,7 @@ def _render_exact(run, c2w_gl: np.ndarray, intrinsics: Intrinsics, values: torch
         acc.append(out.acc.cpu())
         probs.append(torch.softmax(torch.cat([out.logits[:, :m], out.logits[:, -1:]], -1), -1).cpu())
     cat = (lambda parts, *shape: torch.cat(parts) if parts else torch.zeros(0, *shape))
-    return {"rgb": cat(rgb, 3), "depth": cat(depth), "acc": cat(acc), "probs": cat(probs, m + 1)}
+    return {"rgb": cat(rgb, 3), "depth": cat(depth), "acc": cat(acc), "probs": cat(probs, m + 1), "z_scale": z_scale}
 
 
 # ----------------------------------------------------------------------------------------------------------------

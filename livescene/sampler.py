@@ -92,13 +92,21 @@ def render_logits(logits: torch.Tensor, weights: torch.Tensor, slot_mask: torch.
     "probs": log of the weighted per-sample probabilities, the light that leaves the box counted as background,
     so the mask losses reach the very samples whose probabilities pick k. "logits": weighted logits (official)."""
     if mode == "logits":
-        return (weights[..., None] * logits).sum(1).masked_fill(~slot_mask, -1e4)
+        return pixel_logits((weights[..., None] * logits).sum(1), None, slot_mask, mode)
     acc = weights.sum(1, keepdim=True).detach()
     if weights.requires_grad:  # only where along the ray the light comes from may change, not how much of it:
         # else "transparent" is the cheapest background
         weights = weights / weights.sum(1, keepdim=True).clamp(min=1e-6) * acc
-    p = (weights[..., None] * torch.softmax(logits, -1)).sum(1)
-    p = torch.cat([p[:, :-1], p[:, -1:] + (1 - acc).clamp(min=0)], -1)
+    return pixel_logits((weights[..., None] * torch.softmax(logits, -1)).sum(1), acc[:, 0], slot_mask, mode)
+
+
+def pixel_logits(mixed: torch.Tensor, acc: torch.Tensor | None, slot_mask: torch.Tensor, mode: str) -> torch.Tensor:
+    """Pixel object logits (R, C) from the weighted sum over a ray's samples `mixed` (R, C): of the logits in mode
+    "logits"; of the probabilities in mode "probs", the light that leaves the box (1 - acc (R,)) counted as
+    background (`render_logits`; the fast renderer sums the samples itself)."""
+    if mode == "logits":
+        return mixed.masked_fill(~slot_mask, -1e4)
+    p = torch.cat([mixed[:, :-1], mixed[:, -1:] + (1 - acc[:, None]).clamp(min=0)], -1)
     return torch.log(p.clamp(min=1e-6)).masked_fill(~slot_mask, -1e4)
 
 

@@ -130,6 +130,7 @@ def hand_shows(run_dir: Path, most: int = 6, scale: float = 0.25, hands: Path | 
     import cv2
 
     from interreal.transients import read_transient
+    from livescene.losses import psnr
     from livescene.render import learned_frame_states, render_view
     from livescene.run import load_run
 
@@ -137,30 +138,27 @@ def hand_shows(run_dir: Path, most: int = 6, scale: float = 0.25, hands: Path | 
     v = run.views
     ds = v.dataset
     hands = hands or ds.root
-    share = {}
-    for i in v.train:
-        m = read_transient(hands, ds.frames[i].fid)
-        if m is not None and m.any():
-            share[i] = float(m.mean())
-    if not share:
+    layer = {i: read_transient(hands, ds.frames[i].fid) for i in v.train}
+    layer = {i: m for i, m in layer.items() if m is not None and m.any()}
+    if not layer:
         return {"hand_frames": 0}
     states = learned_frame_states(run)
     inside, outside = [], []
-    for i in sorted(share, key=lambda j: -share[j])[:most]:
-        intr = v.intrinsics[i]
-        w, h = max(8, int(intr.w * scale)), max(8, int(intr.h * scale))
-        out = render_view(run, v.c2w_gl[i], intr.scaled(w, h), states[i], time=float(v.times[i]))["rgb"]
+    for i in sorted(layer, key=lambda j: -float(layer[j].mean()))[:most]:
+        w, h = _scaled_size(v.intrinsics[i], scale)
+        out = render_view(run, v.c2w_gl[i], v.intrinsics[i].scaled(w, h), states[i], time=float(v.times[i]))["rgb"]
         img = cv2.resize(ds.load_image(ds.frames[i]), (w, h), interpolation=cv2.INTER_AREA).astype(np.float32) / 255
-        hand = cv2.resize(read_transient(hands, ds.frames[i].fid).astype(np.uint8), (w, h),
-                          interpolation=cv2.INTER_NEAREST) > 0
+        hand = cv2.resize(layer[i].astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
         err = ((out - img) ** 2).mean(-1)
         inside.append(float(err[hand].mean()))
         outside.append(float(err[~hand].mean()))
+    return {"hand_frames": len(inside), "psnr_at_hand": round(psnr(np.mean(inside)), 2),
+            "psnr_elsewhere": round(psnr(np.mean(outside)), 2)}
 
-    def db(e: list[float]) -> float:
-        return round(float(-10 * np.log10(max(np.mean(e), 1e-10))), 2)
 
-    return {"hand_frames": len(inside), "psnr_at_hand": db(inside), "psnr_elsewhere": db(outside)}
+def _scaled_size(intr, scale: float) -> tuple[int, int]:
+    """(w, h) of a camera's image `scale` times its size (at least 8 pixels a side)."""
+    return max(8, int(intr.w * scale)), max(8, int(intr.h * scale))
 
 
 def part_change(run_dir: Path, scale: float = 0.25, tol: float = 0.1) -> list[float]:
@@ -177,7 +175,7 @@ def part_change(run_dir: Path, scale: float = 0.25, tol: float = 0.1) -> list[fl
     out = []
     for i in held:
         intr = v.intrinsics[i]
-        w, h = max(8, int(intr.w * scale)), max(8, int(intr.h * scale))
+        w, h = _scaled_size(intr, scale)
         small = intr.scaled(w, h)
         a = render_view(run, v.c2w_gl[i], small, [0.0])["rgb"]
         b = render_view(run, v.c2w_gl[i], small, [1.0])["rgb"]

@@ -238,15 +238,17 @@ class Propagator:
         soft = self.refine(warped, image)
         return soft, acc, trust
 
-    def _fit_plane(self, mask: np.ndarray, st: Step, rng: np.random.Generator) -> tuple[np.ndarray, float] | None:
-        """Homography fit (RANSAC, 1 px) to the flow of an eroded region; with its inlier ratio, or None."""
+    def _fit_plane(self, mask: np.ndarray, st: Step, rng: np.random.Generator, iters: int = RANSAC_ITERS
+                   ) -> tuple[np.ndarray, float] | None:
+        """Homography fit (RANSAC, 1 px, `iters` iterations) to the flow of an eroded region; with its inlier
+        ratio, or None."""
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
         ys, xs = np.nonzero(cv2.erode(mask.astype(np.uint8), kernel))
         if len(xs) < 40:
             return None
         sel = rng.choice(len(xs), size=min(len(xs), 600), replace=False)
         src = np.stack([xs[sel], ys[sel]], 1).astype(np.float32)
-        H, inl = cv2.findHomography(src, src + st.push[ys[sel], xs[sel]], cv2.RANSAC, 1.0, maxIters=RANSAC_ITERS)
+        H, inl = cv2.findHomography(src, src + st.push[ys[sel], xs[sel]], cv2.RANSAC, 1.0, maxIters=iters)
         if H is None or not np.all(np.isfinite(H)):
             return None
         return H, float(inl.mean())
@@ -310,17 +312,11 @@ class Propagator:
         rng = np.random.default_rng(0)
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
         for k in range(self.k):
-            inner = cv2.erode((soft[..., k] > 0.5).astype(np.uint8), kernel)
-            ys, xs = np.nonzero(inner)
-            if len(xs) < 40:
+            fit = self._fit_plane(soft[..., k] > 0.5, st, rng, iters=2000)  # OpenCV's default
+            if fit is None:
                 continue
-            sel = rng.choice(len(xs), size=min(len(xs), 600), replace=False)
-            src = np.stack([xs[sel], ys[sel]], 1).astype(np.float32)
-            dst = src + st.push[ys[sel], xs[sel]]
-            H, inl = cv2.findHomography(src, dst, cv2.RANSAC, 1.0)
-            if H is None or not np.all(np.isfinite(H)):
-                continue
-            lam = self.cfg.rigid * _plane_weight(float(inl.mean()))
+            H, inlier_ratio = fit
+            lam = self.cfg.rigid * _plane_weight(inlier_ratio)
             if lam <= 0:
                 continue
             moved = cv2.warpPerspective(soft[..., k], H, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)

@@ -29,8 +29,8 @@ from .ladder import Workspace, diagnose, extract, keep_models, polish, run_ladde
 from .pose_import import import_poses
 
 
-NOT_IN_MODEL = ("verbose", "undistort", "allow_low_parallax", "intrinsics", "intrinsics_refine")  # settings left out of
-# the final model's fingerprint: no effect on it, or (the intrinsics) already in the features' fingerprint by value
+NOT_IN_MODEL = ("verbose", "undistort", "allow_low_parallax", "intrinsics")  # settings left out of the final model's
+# fingerprint: no effect on it, or (the intrinsics) already in the features' fingerprint by value
 
 
 def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
@@ -71,11 +71,11 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
         if cfg.use_masks and mask_src == "none":
             rep.warn("no object masks (DS/masks or DS/sfm_masks): moving parts may corrupt poses; run "
                      "`interreal masks DS --keyframes DIR` first", cause="no-masks")
-        octave, side = resolve_octave(cfg, images[0]), max(image_hw(images[0]))
+        octave, side = resolve_octave(cfg, images[0]), max(h0, w0)
         fine = fine_frames(cfg, len(images), octave, side)
         fp_feat = fingerprint("features", files_fingerprint(images), files_fingerprint(mask_files) if mask_files else None,
                               cfg.sfm_long_side, cfg.max_features, octave, cfg.camera_model, fine,
-                              *([known.colmap_params(), cfg.intrinsics_refine] if known is not None else []))
+                              *([known.colmap_params()] if known is not None else []))  # refining them: mapping only
         with rep.step("features") as st:
             if ws.state.get("features") == fp_feat and ws.db.exists():
                 st["reused"] = True
@@ -96,7 +96,7 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
             rep.steps["reuse"] = {"wall_s": 0.0, "reused": True}
             rec = ws.pc.Reconstruction(str(final))
         else:
-            check_parallax(ws, side)
+            check_parallax(ws, (w0, h0))
             attempt, tried = run_ladder(ws, rungs, fp_feat)
             rec = polish(ws, attempt.rec, use_track_refinement(cfg, len(images), side), extend)
             keep_models(ws, attempt, rec, tried)
@@ -119,14 +119,14 @@ def estimate_poses(ds: str | Path, **opts: Any) -> dict[str, Any]:
     return figures
 
 
-def check_parallax(ws: Workspace, long_side: int) -> None:
+def check_parallax(ws: Workspace, size: tuple[int, int]) -> None:
     """Refuse in seconds, before any mapping, a capture whose camera only turned or stood still
     (`parallax.measure`: no sampled frame pair shows the parallax a triangulation needs); with
-    --allow-low-parallax only warn. Figures and time go to the report's step "parallax"."""
+    --allow-low-parallax only warn. Figures and time go to the report's step "parallax". size: the frames' (w, h)."""
     rep, cfg = ws.rep, ws.cfg
     with rep.step("parallax") as st:
-        noise = max(1.0, long_side / cfg.sfm_long_side)  # keypoints come back in full-size pixels
-        res = parallax.measure(ws.pc, ws.db, ws.names, _size(ws), noise, None if ws.known is None else ws.known.K)
+        noise = max(1.0, max(size) / cfg.sfm_long_side)  # keypoints come back in full-size pixels
+        res = parallax.measure(ws.pc, ws.db, ws.names, size, noise, None if ws.known is None else ws.known.K)
         st.update(res.figures())
     rep.figures["parallax"] = res.figures()
     if not res.low():
@@ -135,11 +135,6 @@ def check_parallax(ws: Workspace, long_side: int) -> None:
         raise LowParallaxError(res.message(ws.names))
     rep.warn(f"the camera barely moved ({res.finding(ws.names)}); mapping anyway (--allow-low-parallax)",
              cause="low-parallax")
-
-
-def _size(ws: Workspace) -> tuple[int, int]:
-    h, w = image_hw(ws.images / ws.names[0])
-    return w, h
 
 
 def make_config(**opts: Any) -> SfMConfig:

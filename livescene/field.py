@@ -159,6 +159,19 @@ class RadianceField(nn.Module):
         """RGB (N, 3) from `density`'s output and the view directions."""
         return torch.sigmoid(self.color_net(torch.cat([spherical_harmonics(dirs, self.bands), h[:, 1:]], -1)))
 
+    def view_term(self, dirs: torch.Tensor) -> torch.Tensor:
+        """(N, hidden): the view directions' share of the colour net's first layer, bias included. Samples of one
+        ray share it, so a renderer computes it once per ray (`color_from`)."""
+        first = self.color_net[0]
+        n_sh = self.bands ** 2
+        return torch.addmm(first.bias, spherical_harmonics(dirs, self.bands), first.weight[:, :n_sh].t())
+
+    def color_from(self, view: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        """RGB (N, 3) from a `view_term` (N, hidden) and `density`'s output: `color` to float rounding."""
+        first = self.color_net[0]
+        pre = torch.addmm(view, h[:, 1:], first.weight[:, self.bands ** 2:].t())
+        return torch.sigmoid(self.color_net[1:](pre))
+
 
 class ProposalField(nn.Module):
     """A small single-scale 4-D K-planes density used to place the next level's samples."""

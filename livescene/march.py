@@ -35,7 +35,7 @@ import torch
 
 from .articulation import KIND_CODES, rotate
 from .config import SamplerConfig
-from .field import GATED_LOGIT, LiveSceneModel, normalise, spherical_harmonics
+from .field import GATED_LOGIT, LiveSceneModel, normalise
 from .sampler import pdf_edges, pixel_logits, ray_box, uniform_edges, volume_weights
 
 TERMINATE_T = 1e-4  # a ray stops once less than this share of its light can still come from further on
@@ -293,30 +293,21 @@ def march_rays(model: LiveSceneModel, fixed: FixedStates, origins: torch.Tensor,
 
 
 class RayColor:
-    """The colour net with its view-direction half done once per ray: its first layer reads [SH(dir), geo
-    features], and the samples of a ray share the direction, so W_sh SH(dir) + bias is a per-ray term (a sample
-    read in a rigid part's frame, its direction turned, gets its own). `RadianceField.color` to float rounding."""
+    """The colour net with its view-direction half done once per ray (`RadianceField.view_term`): the samples of a
+    ray share the direction (a sample read in a rigid part's frame, its direction turned, gets its own)."""
 
     def __init__(self, model: LiveSceneModel, dirs: torch.Tensor):
         self.field = model.field
-        first = self.field.color_net[0]
-        self.n_sh = self.field.bands ** 2
-        self.w_sh, self.w_geo = first.weight[:, : self.n_sh], first.weight[:, self.n_sh:]
-        self.bias = first.bias
-        self.per_ray = self._sh_term(dirs)  # (R, hidden)
-
-    def _sh_term(self, dirs: torch.Tensor) -> torch.Tensor:
-        return torch.addmm(self.bias, spherical_harmonics(dirs, self.field.bands), self.w_sh.t())
+        self.per_ray = self.field.view_term(dirs)  # (R, hidden)
 
     def color(self, h: torch.Tensor, rays: torch.Tensor, which: torch.Tensor, placed: Placed) -> torch.Tensor:
         """RGB (P, 3) of samples with sigma-net outputs h (P, 1 + geo) on rays `rays` (P,); `which` (P,): their
         positions in `placed` (whose `moved` samples read a turned direction)."""
-        pre = self.per_ray[rays]
+        view = self.per_ray[rays]
         if placed.moved is not None and len(placed.moved):
             turned = torch.zeros(len(placed.view), dtype=torch.bool, device=h.device)
             turned[placed.moved] = True
             sel = turned[which].nonzero()[:, 0]
             if len(sel):
-                pre[sel] = self._sh_term(placed.view[which[sel]])
-        pre = torch.addmm(pre, h[:, 1:], self.w_geo.t())
-        return torch.sigmoid(self.field.color_net[1:](pre))
+                view[sel] = self.field.view_term(placed.view[which[sel]])
+        return self.field.color_from(view, h)

@@ -75,8 +75,7 @@ def validate(root: str | Path, check_masks: bool = True) -> ValidationResult:
     summary["frames"] = len(frames)
     mapping = _validate_mapping(root, add)
     summary["objects"] = [mapping[i] for i in sorted(mapping)] if mapping else []
-    unposed: list[int] = []
-    labels = _validate_labels(root, mapping, frames, add, unposed)
+    labels, unposed = _validate_labels(root, mapping, frames, add)
     summary["labels_per_object"] = _labels_per_object(labels, mapping)
     warnings = [m for _, m in label_shortage(summary["labels_per_object"], len(frames))] if frames else []
     if unposed:
@@ -238,23 +237,25 @@ def _validate_mapping(root: Path, add) -> dict[int, str]:
     return mapping
 
 
-def _validate_labels(root: Path, mapping: dict[int, str], frames: list[tuple[str, dict]], add,
-                     unposed: list[int]) -> dict:
-    """The labels that training can use. A label on a frame that was extracted but has no pose (SfM did not register
-    it) goes to `unposed`: a warning, not a problem, since a re-run of `poses` may drop a frame it held before."""
+def _validate_labels(root: Path, mapping: dict[int, str], frames: list[tuple[str, dict]], add
+                     ) -> tuple[dict, list[int]]:
+    """(the labels that training can use, the frames labelled that were extracted but have no pose). A label on an
+    unposed frame (SfM did not register it) is a warning, not a problem: a re-run of `poses` may drop a frame it
+    held before."""
     path = root / LABELS_FILE
     ok, raw = _read_checked_yaml(path, add, "no-labels", "set keyframe states with `interreal label DS --set NAME FRAME VALUE`")
     if not ok:
-        return {}
+        return {}, []
     if raw is None:
         raw = {}
     if not isinstance(raw, dict):
         add("bad-labels", path, "expected {frame_00042: {object name: value}}")
-        return {}
+        return {}, []
     names = set(mapping.values())
     frame_numbers = {int(fid) for fid, _ in frames}
-    extracted = _extracted_frames(root)
+    extracted: set[int] | None = None  # DS/images listed only when a label names a frame without a pose
     good: dict[str, dict[str, float]] = {}
+    unposed: list[int] = []
 
     official = is_official_data(root)
     for key, entry in raw.items():
@@ -265,6 +266,7 @@ def _validate_labels(root: Path, mapping: dict[int, str], frames: list[tuple[str
             add("bad-labels", where, "key does not end in a frame number (use frame_00042)")
             continue
         if frames and idx not in frame_numbers:
+            extracted = _extracted_frames(root) if extracted is None else extracted
             if idx in extracted:  # SfM left it out: the label is not used, and the dataset stays usable
                 unposed.append(idx)
                 continue
@@ -282,7 +284,7 @@ def _validate_labels(root: Path, mapping: dict[int, str], frames: list[tuple[str
                     f"`interreal label DS --set {name!r} {key} VALUE` or --unset)")
                 continue
             good.setdefault(str(key), {})[str(name)] = float(value)
-    return good
+    return good, unposed
 
 
 def _extracted_frames(root: Path) -> set[int]:

@@ -398,15 +398,6 @@ def test_prefetch_thread_gives_identical_masks(tmp_path):
         assert np.array_equal(a, b)
 
 
-def test_auto_work_size_follows_the_longest_keyframe_gap():
-    from interreal.masks.track import DENSE_WORK_LONG_SIDE, WORK_LONG_SIDE, auto_work_long_side
-
-    assert auto_work_long_side(range(0, 50, 10), 50) == DENSE_WORK_LONG_SIDE  # every 10: short chains everywhere
-    assert auto_work_long_side([0], 50) == WORK_LONG_SIDE                    # first frame only: a 49-frame chain
-    assert auto_work_long_side([20, 30], 40) == WORK_LONG_SIDE               # 20 frames before the first keyframe
-    assert auto_work_long_side([0, 60, 120], 121) == WORK_LONG_SIDE
-
-
 def test_filter_objects_and_argmax_match_the_plain_versions():
     from interreal.masks.track import _argmax_channels, _argmax_labels, filter_objects
 

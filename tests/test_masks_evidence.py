@@ -7,7 +7,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from interreal.masks.appearance import AppearanceConfig, ColourModel, heldout_information
+from interreal.masks.appearance import AppearanceConfig, ColourModel, heldout_information, quantize
 from interreal.masks.flow import Step
 from interreal.masks.soft import anchor_soft
 from interreal.masks.track import Propagator, TrackConfig
@@ -70,14 +70,51 @@ def test_motion_evidence_removes_mask_that_moves_with_the_background():
     soft[..., 1] = 1.0 - soft[..., 0]
     xs, ys = prop.grid
     st = Step(xs, ys, np.ones((h, w), np.float32), push)
-    out = prop._motion_evidence(soft, st)
+    out = prop._motion_evidence(soft, st, prop._plane_fits(soft, st), 1.0)
     assert out[strip, 0].max() < 0.25, out[strip, 0].max()           # the strip becomes background (0.17)
     assert out[obj, 0].min() > 0.94                                   # the object keeps its pixels (0.95)
     assert np.all(out[..., 0] <= soft[..., 0] + 1e-6)                 # evidence only removes
     assert np.allclose(out.sum(-1), 1.0, atol=1e-5)
     # object and camera moving alike: no evidence either way
     same = Step(xs, ys, np.ones((h, w), np.float32), np.full((h, w, 2), -3.0, np.float32))
-    assert np.allclose(prop._motion_evidence(soft, same), soft, atol=1e-5)
+    assert np.allclose(prop._motion_evidence(soft, same, prop._plane_fits(soft, same), 1.0), soft, atol=1e-5)
+
+
+def test_grow_adds_only_pixels_that_move_with_the_object_and_have_its_colours():
+    """Around a red object mask (flow +4 px, camera -3 px): a red strip the mask missed that moves with the object
+    joins it; a green strip moving with it (a shadow, a wake) does not, nor a red strip moving with the camera;
+    and with object and camera moving alike nothing is added."""
+    w, h = 160, 120
+    img, lab = _keyframe((220, 40, 40))        # a red disk (radius 30 at (80, 60)) on green
+    key_soft, known = anchor_soft(lab, 1, (w, h))
+    model = ColourModel.fit(img, key_soft, known, AppearanceConfig())
+    prop = _propagator(w, h)
+    band = max(1, round(0.01 * w))             # GROW_BAND of the long side
+    obj = np.zeros((h, w), bool)
+    obj[40:80, 60:100] = True                  # the mask before this step
+    missed = np.zeros((h, w), bool)
+    missed[40:80, 100:100 + band] = True       # object the mask has not got yet: red, moves with it
+    shadow = np.zeros((h, w), bool)
+    shadow[80:80 + band, 60:100] = True        # green, moves with it
+    still = np.zeros((h, w), bool)
+    still[40:80, 60 - band:60] = True          # red, moves with the camera
+    frame = np.full((h, w, 3), (90, 120, 90), np.uint8)
+    frame[obj | missed | still] = (220, 40, 40)
+    push = np.zeros((h, w, 2), np.float32)
+    push[..., 0] = -3.0
+    push[obj | missed | shadow, 0] = 4.0
+    soft = np.zeros((h, w, 2), np.float32)
+    soft[..., 0] = np.where(obj, 0.95, 0.02)
+    soft[..., 1] = 1.0 - soft[..., 0]
+    xs, ys = prop.grid
+    st = Step(xs, ys, np.ones((h, w), np.float32), push)
+    bins = quantize(frame, model.cfg.bins)
+    out = prop._grow(soft, st, prop._plane_fits(soft, st), model, bins, 0.8)
+    assert out[missed, 0].min() > 0.8, out[missed, 0].min()          # 0.02 -> 0.804
+    assert np.allclose(out[shadow | still], soft[shadow | still])    # untouched
+    assert np.allclose(out[obj], soft[obj]) and np.allclose(out.sum(-1), 1.0, atol=1e-5)
+    same = Step(xs, ys, np.ones((h, w), np.float32), np.full((h, w, 2), -3.0, np.float32))
+    assert np.allclose(prop._grow(soft, same, prop._plane_fits(soft, same), model, bins, 0.8), soft)
 
 
 def test_one_sided_chain_uses_the_keyframe_measured_colour_weight(monkeypatch):

@@ -9,6 +9,7 @@ from ..options import option
 from .appearance import AppearanceConfig
 from .flow import FlowConfig
 from .track import TrackConfig
+from .workframes import WORK_LONG_SIDE
 
 PREVIEW_KINDS = ("sheet", "video", "both", "none")
 
@@ -17,8 +18,8 @@ PREVIEW_KINDS = ("sheet", "video", "both", "none")
 class MasksConfig:
     """Settings of one `interreal masks` run; the fields declared with `option` are its flags."""
 
-    work_long_side: int = option(-1, "long side of the flow/propagation resolution (0 = full size; -1 = auto: 400 "
-                                     "when every keyframe gap is at most 12 frames, else 480)",
+    work_long_side: int = option(-1, "long side of the flow/propagation resolution (0 = full size; -1 = the default, "
+                                     f"{WORK_LONG_SIDE})",
                                  flag="--work-size", metavar="PX")
     flow: str = option("dis", "optical flow", choices=("dis", "rlof", "farneback"))
     preset: str = option("fast", "DIS preset", choices=("ultrafast", "fast", "medium"))

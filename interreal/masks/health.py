@@ -3,8 +3,9 @@
 Why: the chains' own cues (flow trust, forward/backward agreement) stay high on a mask that has collapsed to
 nothing or slid onto the background, so they cannot tell a good sequence from a failed one. Here every frame
 is compared with what the keyframes say the object looks like, with cues that hold on any footage:
-- area: min/max of the mask's area and the keyframes' (interpolated); an IoU can be no higher than this
-  ratio when the object keeps its size;
+- area: min/max of the mask's area and the keyframes' (interpolated), or of the mask's area and the one its
+  object's own motion predicts from the keyframe (chains with one keyframe), whichever agrees better; an IoU can
+  be no higher than this ratio when the object's size is known;
 - trust: forward-backward flow consistency on the mask (low where the object deforms or is occluded);
 - thin: the keyframe mask's outline length over its area, times 1 % of the image width: the share of the
   object a boundary error of that size costs (a kite's lines lose J that a car's body does not);
@@ -33,7 +34,7 @@ MODEL = ("area", "trust", "thin", "edges", "agree", "two_sided")  # the predicte
 FEATURES = MODEL + ("appearance", "reach", "jump")
 # linear weights on MODEL (+ bias last), ridge fit on the shared DAVIS sequences, both protocols
 # (`python recipes/bench_masks.py --fit` prints them)
-WEIGHTS = np.array([0.251, 0.319, -0.158, 0.299, -0.029, 0.138, 0.009])
+WEIGHTS = np.array([0.472, 0.075, -0.108, 0.235, 0.051, 0.08, 0.074])
 RIDGE = 0.1
 EDGES_CAP = 1.2      # an outline sharper than the keyframe's is no better evidence than an equal one
 # a sequence (object) whose predicted mean J over propagated frames is under this is warned about
@@ -163,16 +164,28 @@ def reach_per_frame(motion: np.ndarray, keys: list[int], n: int) -> np.ndarray:
     return np.abs(cum[:, None] - kc[None, :]).min(1)
 
 
+def area_ratio(area: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """min / max of two areas (1 where both are empty)."""
+    hi, lo = np.maximum(area, ref), np.minimum(area, ref)
+    return np.where(hi > 0, lo / np.maximum(hi, 1e-12), 1.0)
+
+
 def build_features(area: np.ndarray, ref_area: np.ndarray, app: np.ndarray, edges: np.ndarray, trust: np.ndarray,
-                   agree: np.ndarray, centroid: np.ndarray, reach: np.ndarray, thin: np.ndarray) -> np.ndarray:
+                   agree: np.ndarray, centroid: np.ndarray, reach: np.ndarray, thin: np.ndarray,
+                   moved_area: np.ndarray | None = None) -> np.ndarray:
     """Per frame and object (n, K, len(FEATURES)) from the stage's per-frame cues.
 
     area, ref_area, app, edges, trust, thin: (n, K); agree: (n, K), NaN on one-sided frames; centroid (n, K, 2)
-    in image widths; reach (n,).
+    in image widths; reach (n,); moved_area (n, K): the area the object's own motion predicts from its keyframe,
+    NaN where no chain measured it. The area cue is the better of the two agreements: an object that comes closer
+    has a right mask far larger than its keyframe's (scooter-black: 0.33 of it on average, J 0.79) but close to
+    what its motion says; a deforming object's motion says little (its homographies drift), its keyframe more.
     """
     n, k = area.shape
-    hi, lo = np.maximum(area, ref_area), np.minimum(area, ref_area)
-    area_score = np.where(hi > 0, lo / np.maximum(hi, 1e-12), 1.0)
+    area_score = area_ratio(area, ref_area)
+    if moved_area is not None:
+        known = np.isfinite(moved_area)
+        area_score = np.where(known, np.maximum(area_score, area_ratio(area, np.nan_to_num(moved_area))), area_score)
     two = np.isfinite(agree)
     size = np.sqrt(np.maximum(area, 1e-6))  # object size in image widths-ish (share of the image, square-rooted)
     jump = np.zeros((n, k))

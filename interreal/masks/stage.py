@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, replace
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,6 @@ from ..video import VideoWriter
 from .preview import contact_sheet, second_line, thumb
 from .soft import argmax_labels
 from .track import Propagator, TrackConfig
-from .workframes import auto_work_long_side
 from ..transients import (IGNORE, clear_transients, read_transient, split_labels, track_labels, transient_file,
                           write_transient)
 
@@ -105,8 +105,6 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
     # the painted ignore class (people, hands) is tracked as one more object, then written to DS/transients/
     n_track = n_obj + int(kf.has_ignore)
     anchors = {pos_of[f]: track_labels(m, n_obj) for f, m in kf.masks.items()}
-    if cfg.work_long_side < 0:
-        cfg = replace(cfg, work_long_side=auto_work_long_side(anchors, len(fids)))
     inputs = {"keyframes_dir": str(keyframes_dir), "keyframes": kf.sources, "frames": len(fids),
               "size": list(size), "objects": kf.names, "fingerprints": fingerprints}
     settings = {**asdict(cfg), "suggest": suggest, "preview": preview}
@@ -131,14 +129,13 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
         with rep.step("propagate") as info:
             t_start, c_start, c_write = time.perf_counter(), time.process_time(), 0.0
             bar = tqdm(total=len(fids), desc="masks", unit="frame", disable=not progress)
+            # files are written on a thread of their own: encoding and syncing them overlaps the chains
+            writer, written = ThreadPoolExecutor(1, thread_name_prefix="write"), []
             for res in prop.run(anchors):
                 tw, cw = time.perf_counter(), time.process_time()
-                labels, transient = split_labels(res.labels, n_obj)
-                write_mask(ds, fids[res.pos], index_to_onehot(labels, n_obj))
-                if transient.any():
-                    write_transient(ds, fids[res.pos], transient)
-                    transient_share[res.pos] = transient.mean()
-                _write_sfm_mask(ds, images[res.pos].name, res.labels, dil)  # transients left out like objects
+                transient_share[res.pos] = (res.labels == n_obj + 1).mean() if n_track > n_obj else 0.0
+                written.append(writer.submit(_write_frame, ds, fids[res.pos], images[res.pos].name, res.labels,
+                                             n_obj, dil))
                 cues.add(res, prop, key_refs)
                 if preview != "none":
                     image = prop.cache.peek(res.pos)
@@ -152,6 +149,11 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
                 c_write += time.process_time() - cw
                 bar.update(1)
             bar.close()
+            tw = time.perf_counter()
+            writer.shutdown(wait=True)
+            for done in written:
+                done.result()  # a failed write raises here
+            t_write += time.perf_counter() - tw
             compute = time.perf_counter() - t_start - t_write
             cpu = time.process_time() - c_start - c_write
             # fps: wall clock (slowed by whatever else runs); cpu_fps: frames per CPU-second over all threads,
@@ -165,7 +167,7 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
         keys = sorted(anchors)
         ref_area = np.stack([_ref_area(ref, i) for i in range(len(fids))])
         feats = H.build_features(cues.area, ref_area, cues.appearance, cues.edges, cues.trust, cues.agree,
-                                 cues.centroid, H.reach_per_frame(motion, keys, len(fids)), cues.thin)
+                                 cues.centroid, H.reach_per_frame(motion, keys, len(fids)), cues.thin, cues.moved)
         expected = _expected(ref, len(fids))
         hl = H.assess(feats, cues.area, ref_area, expected, is_key)
         occluded = _occluded_by_transients(ds, fids, hl, n_obj) if grey is not None else {}
@@ -261,6 +263,7 @@ class _Cues:
         self.agree = np.full((n, k), np.nan)
         self.centroid = np.full((n, k, 2), np.nan)
         self.thin = np.zeros((n, k))
+        self.moved = np.full((n, k), np.nan)  # area share the object's own motion predicts (one-sided chains)
 
     def add(self, res, prop: Propagator, key_refs: dict[int, H.KeyRef]) -> None:
         pos = res.pos
@@ -275,6 +278,8 @@ class _Cues:
                                                [key_refs[k] for k in around])
         self.area[pos], self.appearance[pos], self.edges[pos] = cue[:, 0], cue[:, 1], cue[:, 2]
         self.thin[pos] = key_refs[near].thin
+        if res.scale is not None:  # a one-sided chain: its keyframe is the nearest
+            self.moved[pos] = key_refs[near].area * res.scale
         for k in range(cue.shape[0]):
             m = labels == k + 1
             self.trust[pos, k] = float(res.trust[m].mean()) if m.any() else float(res.trust.mean())
@@ -368,6 +373,15 @@ def _ref_area(ref: dict[int, np.ndarray], pos: int) -> np.ndarray:
         return ref[a]
     w = (pos - a) / (b - a)
     return (1 - w) * ref[a] + w * ref[b]
+
+
+def _write_frame(ds: Path, fid: str, image_name: str, labels: np.ndarray, n_obj: int, dilate: int) -> None:
+    """One frame's files: its mask, its transient layer (when any) and its SfM mask."""
+    objects, transient = split_labels(labels, n_obj)
+    write_mask(ds, fid, index_to_onehot(objects, n_obj))
+    if transient.any():
+        write_transient(ds, fid, transient)
+    _write_sfm_mask(ds, image_name, labels, dilate)  # transients left out like objects
 
 
 def _write_sfm_mask(ds: Path, image_name: str, labels: np.ndarray, dilate: int) -> None:

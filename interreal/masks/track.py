@@ -33,12 +33,12 @@ from .appearance import AppearanceConfig, ColourModel, heldout_information, join
 from .flow import FlowConfig, FlowEngine, Step, make_step, sampling_grid
 from .redetect import Event, RedetectConfig, Redetector
 from .soft import anchor_soft, argmax_channels, argmax_labels, channels_to_labels, chsum, filter_objects
-from .workframes import DENSE_WORK_LONG_SIDE, WORK_LONG_SIDE, FrameCache, auto_work_long_side, work_size
+from .workframes import WORK_LONG_SIDE, FrameCache, work_size
 
 # the names tests and older callers import from here
 _argmax_labels, _argmax_channels, _channels_to_labels = argmax_labels, argmax_channels, channels_to_labels
 __all__ = ["TrackConfig", "FrameResult", "Propagator", "median_motion", "FrameCache", "WORK_LONG_SIDE",
-           "DENSE_WORK_LONG_SIDE", "auto_work_long_side", "work_size", "anchor_soft", "filter_objects", "chsum"]
+           "work_size", "anchor_soft", "filter_objects", "chsum"]
 
 
 # A plane fit (RANSAC homography) whose inlier ratio is under MIN_INLIERS gets no weight (`_rigid`,
@@ -46,6 +46,8 @@ __all__ = ["TrackConfig", "FrameResult", "Propagator", "median_motion", "FrameCa
 # samples, 99.5 % sure (OpenCV's default of 2000 iterations made its fits a fifth of the propagation time).
 # `_rigid` keeps OpenCV's default: capping it too moved drift-straight's first-frame J by -0.015 (RANSAC luck).
 MIN_INLIERS = 0.4
+GROW_BAND = 0.01     # `_grow`'s band around an object per step, as a share of the work image's long side
+GROW_COLOUR = 2.0    # ... and how much likelier a joining pixel's colour must be under the object than the background
 RANSAC_ITERS = int(np.ceil(np.log(1 - 0.995) / np.log(1 - MIN_INLIERS ** 4)))
 
 
@@ -55,7 +57,7 @@ class TrackConfig:
 
     flow: FlowConfig = field(default_factory=FlowConfig)
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
-    work_long_side: int = -1         # flow and propagation resolution (long side, px); 0 = full size, -1 = auto
+    work_long_side: int = -1         # flow and propagation resolution (long side, px); 0 = full size, -1 = WORK_LONG_SIDE
     fill_radius: int = 7             # untrusted pixels take the trusted neighbourhood's value within this radius
     refine_radius: int = 3           # guided filter radius at work resolution (0 = no per-step refinement)
     refine_eps: float = 0.02         # guided filter regulariser (on [0, 1] intensities, squared)
@@ -71,6 +73,11 @@ class TrackConfig:
     # (drift-straight), DAVIS first-frame mean J +0.024 at 0.5, no sequence down by more than 0.002 (1.0: +0.022,
     # car-roundabout -0.015); the chains between keyframes keep `motion` (0.5 there: every-10 dog -0.009)
     motion_one_sided: float = 0.5
+    # on the same chains, pixels next to an object that move with it and have its colours join it (`_grow`): the
+    # share of their probability moved to the object (0 = off). DAVIS first-frame mean J +0.017 (cars, bikes that
+    # turn or come closer); between keyframes off: there the next keyframe brings what comes into view, and
+    # growing cost every-10 J -0.008 (a car's mask grew into its shadow)
+    grow: float = 0.8
     fusion: bool = True              # fuse forward and backward chains (False = forward only where possible)
     min_weight: float = 0.05         # weight floor so a fully untrusted chain still counts a little
     vote: float = 8.0                # colour vote of disagreeing chains: loser weight x exp(-vote * margin); 0 = off
@@ -93,6 +100,9 @@ class FrameResult:
     bwd: np.ndarray | None = None           # (h, w) uint8 labels of the backward chain alone
     trust: np.ndarray | None = None         # (h, w) trust of the last step(s) into this frame
     dist: tuple[int | None, int | None] = (None, None)  # frames from the previous / next keyframe
+    # (K,) on chains before the first / after the last keyframe: how much each object's area grew since the keyframe
+    # by its own motion (product of its homographies' area scales; 1 where none was trusted)
+    scale: np.ndarray | None = None
 
 
 class Propagator:
@@ -104,7 +114,6 @@ class Propagator:
         self.size = size  # (W, H) full
         self.k = n_objects
         self.cfg = cfg
-        # auto (-1) needs the keyframes: `stage.propagate` resolves it with auto_work_long_side
         self.wsize = work_size(size[0], size[1], WORK_LONG_SIDE if cfg.work_long_side < 0 else cfg.work_long_side)
         self.cache = FrameCache(load, self.wsize, cfg.appearance.bins)
         self.flow = FlowEngine(cfg.flow)
@@ -203,18 +212,27 @@ class Propagator:
         return make_step(f, b, self.grid, self.cfg.flow)
 
     # -- one step of one chain ----------------------------------------------------------------------------
-    def advance(self, soft: np.ndarray, acc: np.ndarray, src: int, dst: int,
-                model: ColourModel | None, motion: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def advance(self, soft: np.ndarray, acc: np.ndarray, src: int, dst: int, model: ColourModel | None,
+                motion: float | None = None, grow: float = 0.0
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Warp (soft, accumulated trust) from src to dst; untrusted pixels are filled from trusted neighbours.
-        motion: the exponent of the motion evidence (`TrackConfig.motion` when None)."""
+        motion: the exponent of the motion evidence (`TrackConfig.motion` when None); grow: `_grow`'s strength.
+        Returns the soft map, the accumulated trust, this step's trust and each object's area scale (`_rigid`)."""
         st = self.step(src, dst)
         motion = self.cfg.motion if motion is None else motion
-        if motion > 0:
-            soft = self._motion_evidence(soft, st, motion)
+        grow = grow if model is not None else 0.0
+        if motion > 0 or grow > 0:
+            fits = self._plane_fits(soft, st)
+            if fits[0] is not None:
+                if motion > 0:
+                    soft = self._motion_evidence(soft, st, fits, motion)
+                if grow > 0:
+                    soft = self._grow(soft, st, fits, model, self.cache.bins(src), grow)
         warped = st.warp(soft)
         trust = st.trust
+        scale = np.ones(self.k)
         if self.cfg.rigid > 0:
-            warped, trust = self._rigid(soft, st, warped, trust)
+            warped, trust, scale = self._rigid(soft, st, warped, trust)
         # (weakest-link trust along the chain, 'seen': the chain started inside the anchor's annotation).
         # A minimum rather than a product: a product decays to nothing over a long gap even on perfect
         # tracking, and then the temporal weights alone decide the fusion.
@@ -236,7 +254,7 @@ class Propagator:
             warped = warped * model.ratio(self.cache.bins(dst))
             warped /= chsum(warped)
         soft = self.refine(warped, image)
-        return soft, acc, trust
+        return soft, acc, trust, scale
 
     def _fit_plane(self, mask: np.ndarray, st: Step, rng: np.random.Generator, iters: int = RANSAC_ITERS
                    ) -> tuple[np.ndarray, float] | None:
@@ -253,30 +271,40 @@ class Propagator:
             return None
         return H, float(inl.mean())
 
-    def _motion_evidence(self, soft: np.ndarray, st: Step, motion: float | None = None) -> np.ndarray:
+    def _plane_fits(self, soft: np.ndarray, st: Step) -> tuple[np.ndarray | None, list]:
+        """The background's homography and each object's (None where a fit failed), with inlier ratios."""
+        rng = np.random.default_rng(1)
+        bg = self._fit_plane(soft[..., -1] > 0.5, st, rng)
+        if bg is None:
+            return None, []
+        return bg, [self._fit_plane(soft[..., k] > 0.5, st, rng) for k in range(self.k)]
+
+    def _residual2(self, st: Step, H: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
+        """Squared residual of the measured flow at pixels (ys, xs) of src under the homography H, in units of
+        the flow's own consistency tolerance (FlowConfig: abs_tol + rel_tol |flow|^2)."""
+        fc = self.cfg.flow
+        pts = np.stack([xs, ys], -1).reshape(-1, 1, 2).astype(np.float32)
+        pu, pv = st.push[ys, xs, 0], st.push[ys, xs, 1]
+        pred = cv2.perspectiveTransform(pts, H).reshape(xs.shape + (2,))
+        e2 = (pred[..., 0] - xs - pu) ** 2 + (pred[..., 1] - ys - pv) ** 2
+        return e2 / (fc.abs_tol ** 2 + fc.rel_tol * (pu * pu + pv * pv))
+
+    def _motion_evidence(self, soft: np.ndarray, st: Step, fits, motion: float) -> np.ndarray:
         """Take out of each object the pixels whose own flow moves with the background rather than the object.
 
         Flow smears a moving object onto the background next to it, and a part of the mask that slid onto the
         background then travels with it for good (the parked scooters behind a passing one, the trees behind a
         jumping horse). The background's motion (one homography: the camera over the far scene) and each
         object's (one homography) predict every pixel's displacement; the residual of the measured flow under
-        each, in units of the flow's own consistency tolerance (FlowConfig: abs_tol + rel_tol |flow|^2), gives a
-        Gaussian likelihood, floored at three tolerances (beyond that neither model explains the pixel: a
-        deforming limb stays neutral). Where the two motions agree the ratio is one: no evidence. The evidence
-        only removes: "moves like the object" also holds for what the object drags along (a wake, a reflection,
-        a shadow), so it never adds a pixel (measured: adding made a swan's mask spread over its wake). Each
-        fit counts by its inlier ratio, as in `_rigid`.
+        each (`_residual2`) gives a Gaussian likelihood, floored at three tolerances (beyond that neither model
+        explains the pixel: a deforming limb stays neutral). Where the two motions agree the ratio is one: no
+        evidence. The evidence only removes here; `_grow` adds, where colour agrees too. Each fit counts by its
+        inlier ratio, as in `_rigid`.
         """
-        motion = self.cfg.motion if motion is None else motion
-        rng = np.random.default_rng(1)
-        bg = self._fit_plane(soft[..., -1] > 0.5, st, rng)
-        if bg is None:
-            return soft
-        fc = self.cfg.flow
+        bg, objects = fits
         floor = np.float32(np.exp(-0.5 * 9.0))
         out = soft.copy()
-        for k in range(self.k):
-            fit = self._fit_plane(soft[..., k] > 0.5, st, rng)
+        for k, fit in enumerate(objects):
             if fit is None:
                 continue
             a = motion * float(_plane_weight(fit[1]) * _plane_weight(bg[1]))
@@ -284,20 +312,46 @@ class Propagator:
             if a <= 0 or not len(xs):
                 continue
             y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
-            gx, gy = self.grid[0][y0:y1, x0:x1], self.grid[1][y0:y1, x0:x1]
-            pts = np.stack([gx, gy], -1).reshape(-1, 1, 2)
-            pu, pv = st.push[y0:y1, x0:x1, 0], st.push[y0:y1, x0:x1, 1]
-            tol2 = fc.abs_tol ** 2 + fc.rel_tol * (pu * pu + pv * pv)
-
-            def lik(H: np.ndarray) -> np.ndarray:
-                pred = cv2.perspectiveTransform(pts, H).reshape(gx.shape + (2,))
-                e2 = (pred[..., 0] - gx - pu) ** 2 + (pred[..., 1] - gy - pv) ** 2
-                return np.exp(-0.5 * e2 / tol2) + floor
-
-            ratio = np.minimum(lik(fit[0]) / lik(bg[0]), 1.0)
+            by, bx = np.mgrid[y0:y1, x0:x1]
+            ratio = np.minimum((np.exp(-0.5 * self._residual2(st, fit[0], by, bx)) + floor)
+                               / (np.exp(-0.5 * self._residual2(st, bg[0], by, bx)) + floor), 1.0)
             out[y0:y1, x0:x1, k] *= ratio ** a if a != 1.0 else ratio
         out /= np.maximum(chsum(out), 1e-6)
         return out.astype(np.float32, copy=False)
+
+    def _grow(self, soft: np.ndarray, st: Step, fits, model: ColourModel, bins: np.ndarray, grow: float
+              ) -> np.ndarray:
+        """Add to each object the pixels next to it that move with it and have its colours.
+
+        A part that turns into view (a car's rear as it rounds a bend, a drawer's side as it slides out) or an
+        object that comes closer is new to every chain: flow carries only what the mask already holds, so
+        without a second keyframe the mask keeps the object's first outline and shrinks against it (measured:
+        0.7 of the true area after 40-75 frames on three DAVIS cars). A pixel in a thin band around the object
+        joins it when its flow fits the object's homography clearly better than the background's (a quarter of
+        the residual, and beyond three tolerances from the background's) and its colour is at least
+        `GROW_COLOUR` times likelier under the object's keyframe histogram than the background's: motion alone
+        would take a wake or a shadow, colour alone the background of the same colour.
+        """
+        bg, objects = fits
+        out = soft.copy()
+        h, w = soft.shape[:2]
+        r = max(1, round(GROW_BAND * max(h, w)))
+        ring = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        for k, fit in enumerate(objects):
+            if fit is None or _plane_weight(fit[1]) * _plane_weight(bg[1]) <= 0:
+                continue
+            obj = (soft[..., k] > 0.5).astype(np.uint8)
+            ys, xs = np.nonzero(cv2.dilate(obj, ring) > obj)
+            if not len(xs):
+                continue
+            e_obj, e_bg = self._residual2(st, fit[0], ys, xs), self._residual2(st, bg[0], ys, xs)
+            q = bins[ys, xs]
+            add = (e_bg > 9.0) & (e_obj < 0.25 * e_bg) & (model.hist[k, q] > GROW_COLOUR * model.hist[-1, q])
+            if add.any():
+                ya, xa = ys[add], xs[add]
+                out[ya, xa] *= np.float32(1.0 - grow)
+                out[ya, xa, k] += np.float32(grow)
+        return out
 
     def _rigid(self, soft: np.ndarray, st: Step, warped: np.ndarray, trust: np.ndarray):
         """Move each object as one plane (homography fit to its interior flow) where that explains the flow.
@@ -305,10 +359,13 @@ class Propagator:
         Dense flow is smooth across boundaries, so per-pixel warping drags background along with a moving
         object and loses its leading edge; a rigid or planar part (a door, a drawer, a car side) is moved
         exactly by one homography, which keeps its outline. Blended by the fit's inlier ratio, so a
-        deforming object falls back to per-pixel flow.
+        deforming object falls back to per-pixel flow. Also returns each object's (K,) area scale under its
+        homography (what of it stays in view, over what it was; 1 where no fit is trusted): `health` compares a
+        mask's area with the area its object's own motion predicts.
         """
         h, w = trust.shape
         out = warped.copy()
+        scale = np.ones(self.k)
         rng = np.random.default_rng(0)
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
         for k in range(self.k):
@@ -321,12 +378,13 @@ class Propagator:
                 continue
             moved = cv2.warpPerspective(soft[..., k], H, (w, h), flags=cv2.INTER_LINEAR, borderValue=0)
             out[..., k] = lam * moved + (1 - lam) * warped[..., k]
+            scale[k] = float(moved.sum()) / max(float(soft[..., k].sum()), 1e-6)
             region = cv2.dilate(((moved > 0.05) | (warped[..., k] > 0.05)).astype(np.uint8), kernel, iterations=2) > 0
             trust = np.where(region, np.maximum(trust, lam), trust)
         objects = chsum(np.ascontiguousarray(out[..., :-1]))[..., 0]
         out[..., -1] = np.clip(1.0 - objects, 0.0, None)
         out /= np.maximum(chsum(out), 1e-6)
-        return out, trust.astype(np.float32)
+        return out, trust.astype(np.float32), scale
 
     def refine(self, soft: np.ndarray, image: np.ndarray) -> np.ndarray:
         cfg = self.cfg
@@ -435,14 +493,16 @@ class Propagator:
             if info > app.weight:
                 model = model.reweighted(info)
         watch = self._watch(k, start, one_sided=True)
-        prev = k
+        prev, scale = k, np.ones(self.k)
         for i, t in enumerate(order):
-            soft, acc, trust = self.advance(soft, acc, prev, t, model, self.cfg.motion_one_sided)
+            soft, acc, trust, step_scale = self.advance(soft, acc, prev, t, model, self.cfg.motion_one_sided,
+                                                        self.cfg.grow)
+            scale = scale * step_scale
             soft = self._recheck(watch, soft, t)
             lab = argmax_labels(soft)
             dist = (None, i + 1) if nxt else (i + 1, None)
             yield FrameResult(t, self.labels_full(soft, t), soft=soft, fwd=None if nxt else lab,
-                              bwd=lab if nxt else None, trust=trust, dist=dist)
+                              bwd=lab if nxt else None, trust=trust, dist=dist, scale=scale)
             self.release(pair=min(prev, t), frame=prev if prev != k else None)
             prev = t
         self.release(frame=prev if prev != k else None)
@@ -455,11 +515,11 @@ class Propagator:
         watch = self._watch(a, start_a, one_sided=False)
         store = np.float32 if b - a <= 100 else np.float16  # long gaps: halve the memory of the stored chain
         for t in range(a + 1, b):
-            soft, acc, trust = self.advance(soft, acc, t - 1, t, model)
+            soft, acc, trust, _ = self.advance(soft, acc, t - 1, t, model)
             soft = self._recheck(watch, soft, t)
             fwd[t] = (soft.astype(store), acc.astype(store), trust.astype(store))
         if b > a + 1 and (start_b[1] < 1).any():
-            s, c, _ = self.advance(soft, acc, b - 1, b, model)
+            s, c, *_ = self.advance(soft, acc, b - 1, b, model)
             arrivals[b].append((s, c))
         else:
             self.pair(b - 1)  # the backward chain's first step: now, while frame b-1 is still decoded
@@ -474,7 +534,7 @@ class Propagator:
         table = joint_log_table([model_a, model]) if voting else None
         span = b - a
         for t in range(b - 1, a, -1):
-            soft, acc, trust = self.advance(soft, acc, t + 1, t, model)
+            soft, acc, trust, _ = self.advance(soft, acc, t + 1, t, model)
             soft = self._recheck(watch, soft, t)
             sf, cf, tf = (x.astype(np.float32, copy=False) for x in fwd.pop(t))
             lf, lb = argmax_channels(sf), argmax_channels(soft)
@@ -495,7 +555,7 @@ class Propagator:
                               bwd=channels_to_labels(lb, c), trust=0.5 * (tf + trust), dist=(t - a, b - t))
             self.release(pair=t, frame=t)  # the next gap's forward chain starts at b: it never needs t
         if b > a + 1 and (start_a[1] < 1).any():
-            s, c, _ = self.advance(soft, acc, a + 1, a, model)
+            s, c, *_ = self.advance(soft, acc, a + 1, a, model)
             arrivals[a].append((s, c))
         self.release(pair=a, frame=a)
 

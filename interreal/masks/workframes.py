@@ -1,13 +1,13 @@
 """The work resolution propagation runs at, and the frames kept at it.
 
-Flow and the soft maps live on a smaller grid than the images (`work_size`; `auto_work_long_side` picks it from
-the keyframe gaps); `FrameCache` holds each frame's full-size RGB, its work-size copy and colour bins once for
+Flow and the soft maps live on a smaller grid than the images (`work_size`, `WORK_LONG_SIDE` by default);
+`FrameCache` holds each frame's full-size RGB, its work-size copy and colour bins once for
 the current gap, so the forward and backward chains decode nothing twice.
 """
 
 from __future__ import annotations
 
-from typing import Callable, Iterable
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -68,18 +68,10 @@ class FrameCache:
 # auto work size: long chains need the finer grid (drift accumulates step by step); when every keyframe gap is
 # short, both chains re-anchor within a few steps and the coarser grid costs little (DAVIS, keyframe every 10:
 # IoU 0.955 -> 0.941 and 0.946 -> 0.931, 1.5x faster; first frame only: 0.908 -> 0.898 and 0.807 -> 0.789)
+# the default work size (long side, px). Dense keyframes used 400 for speed until writing moved off the chains'
+# path: at 480 a keyframe every 10 frames gains +0.019 mean J on the shared DAVIS sequences (every one up or level)
+# at 16-22 frames/s for the whole command; 512 gave +0.006 more at 14-21
 WORK_LONG_SIDE = 480
-DENSE_WORK_LONG_SIDE = 400
-DENSE_GAP = 12  # frames
-
-
-def auto_work_long_side(keys: Iterable[int], n_frames: int) -> int:
-    """The work size for keyframes at `keys` (positions) in a sequence of n_frames."""
-    keys = sorted(keys)
-    if not keys:
-        return WORK_LONG_SIDE
-    longest = max([keys[0], n_frames - 1 - keys[-1], *(b - a for a, b in zip(keys[:-1], keys[1:]))])
-    return DENSE_WORK_LONG_SIDE if longest <= DENSE_GAP else WORK_LONG_SIDE
 
 
 def work_size(w: int, h: int, long_side: int) -> tuple[int, int]:

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -130,30 +131,32 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
             t_start, c_start, c_write = time.perf_counter(), time.process_time(), 0.0
             bar = tqdm(total=len(fids), desc="masks", unit="frame", disable=not progress)
             # files are written on a thread of their own: encoding and syncing them overlaps the chains
-            writer, written = ThreadPoolExecutor(1, thread_name_prefix="write"), []
-            for res in prop.run(anchors):
-                tw, cw = time.perf_counter(), time.process_time()
-                transient_share[res.pos] = (res.labels == n_obj + 1).mean() if n_track > n_obj else 0.0
-                written.append(writer.submit(_write_frame, ds, fids[res.pos], images[res.pos].name, res.labels,
-                                             n_obj, dil))
-                cues.add(res, prop, key_refs)
-                if preview != "none":
-                    image = prop.cache.peek(res.pos)
-                    image = load(res.pos) if image is None else image
-                    cap = f"{fids[res.pos]}{' key' if res.keyframe else ''}"
-                    if preview in ("sheet", "both") and res.pos in sheet_pos:
-                        tiles[res.pos] = thumb(image, res.labels, 240, cap, ignore=grey)
-                    if preview in ("video", "both"):
-                        video[res.pos] = thumb(image, res.labels, vid_w, cap, ignore=grey)
+            with ThreadPoolExecutor(1, thread_name_prefix="write") as writer:
+                pending: deque[Future] = deque()
+                for res in prop.run(anchors):
+                    tw, cw = time.perf_counter(), time.process_time()
+                    transient_share[res.pos] = (res.labels == n_obj + 1).mean() if n_track > n_obj else 0.0
+                    pending.append(writer.submit(_write_frame, ds, fids[res.pos], images[res.pos].name,
+                                                 res.labels, n_obj, dil))
+                    while pending and pending[0].done():
+                        pending.popleft().result()  # a failed write stops the stage here, not at the end
+                    cues.add(res, prop, key_refs)
+                    if preview != "none":
+                        image = prop.cache.peek(res.pos)
+                        image = load(res.pos) if image is None else image
+                        cap = f"{fids[res.pos]}{' key' if res.keyframe else ''}"
+                        if preview in ("sheet", "both") and res.pos in sheet_pos:
+                            tiles[res.pos] = thumb(image, res.labels, 240, cap, ignore=grey)
+                        if preview in ("video", "both"):
+                            video[res.pos] = thumb(image, res.labels, vid_w, cap, ignore=grey)
+                    t_write += time.perf_counter() - tw
+                    c_write += time.process_time() - cw
+                    bar.update(1)
+                bar.close()
+                tw = time.perf_counter()
+                for done in pending:
+                    done.result()
                 t_write += time.perf_counter() - tw
-                c_write += time.process_time() - cw
-                bar.update(1)
-            bar.close()
-            tw = time.perf_counter()
-            writer.shutdown(wait=True)
-            for done in written:
-                done.result()  # a failed write raises here
-            t_write += time.perf_counter() - tw
             compute = time.perf_counter() - t_start - t_write
             cpu = time.process_time() - c_start - c_write
             # fps: wall clock (slowed by whatever else runs); cpu_fps: frames per CPU-second over all threads,

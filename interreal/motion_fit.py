@@ -377,6 +377,13 @@ def fit_motion(pv: PartViews, states: np.ndarray, known: np.ndarray, labelled: n
     fit, evidence = choose(hinge, slide, pv)
     extra: dict[str, Any] = {"registered": int(len(pv.frames)), **hinge.figures, **slide.figures, **evidence,
                              "kind_from": "geometry", **(turns_with_camera(pv, states, known) or {})}
+    return articulate(fit, pv.frames, states, known, labelled, extra)
+
+
+def articulate(fit: Fit, frames: np.ndarray, states: np.ndarray, known: np.ndarray, labelled: np.ndarray,
+               extra: dict[str, Any]) -> tuple[Articulation, dict[str, Any]]:
+    """A fitted motion (whatever measured it) oriented and calibrated by the labels, with its figures: per-frame
+    measured states, the label check, flagged labels, `accepted` and its `reason` (`fit_motion`'s docstring)."""
     cal = calibrate(fit.d, fit.ok, states, known)
     axis, d, point = fit.axis.copy(), fit.d.copy(), fit.point.copy()
     if cal is None:
@@ -388,9 +395,9 @@ def fit_motion(pv: PartViews, states: np.ndarray, known: np.ndarray, labelled: n
     if rate < 0:  # the axis points the way the state grows
         axis, d, rate, d0 = -axis, -d, -rate, -d0
     measured = np.where(fit.ok, (d - d0) / rate, np.nan)
-    extra.update(label_figures(pv.frames, measured, states, labelled))
+    extra.update(label_figures(frames, measured, states, labelled))
     extra.update(scale=float(fit.scale), end_states=list(cal.end_states),
-                 frame_states=[[int(f), round(float(m), 4)] for f, m in zip(pv.frames, measured) if np.isfinite(m)],
+                 frame_states=[[int(f), round(float(m), 4)] for f, m in zip(frames, measured) if np.isfinite(m)],
                  pos_residual=round(float(np.median(fit.pos_resid[fit.ok])), 6))
     origin = point if fit.kind == "hinge" else point + d0 * axis  # a slide's origin: where it is at state 0
     extra.update(_acceptance(fit, extra, rate))

@@ -1,7 +1,8 @@
 """`interreal motions DS`: how each object moves with its state, measured from the video -> DS/articulation.json.
 
 A rigid part's pose in the world at every frame, whether it was still or moving, comes from its own pixels (its
-masks, eroded, with the transient layer's hands and people taken out) by one of two routes:
+masks, eroded, with the transient layer's hands and people taken out) by one of two routes (a third, for a part too
+plain for both, needs no pose: see the end):
 - its own SfM (default first): the part's pixels alone reconstructed with pycolmap, as if it were a scene of its
   own; every frame that reconstruction registers gives the camera relative to the part, and with the camera's pose
   in the world (transforms.json), the part's pose;
@@ -9,6 +10,9 @@ masks, eroded, with the transient layer's hands and people taken out) by one of 
   where it rests, with the known cameras, and located in every frame by PnP (seconds, but it needs a stretch where
   the part rests while the camera moves; its reference is the window that triangulates most points, which can be
   one where the part moved slowly).
+When neither gives an accepted motion, the part's silhouettes against the known cameras (`interreal.motion_silhouette`:
+its flat front triangulated from its masks' corners, then the hinge or slide whose predicted silhouettes fit the
+masks) measure every frame's displacement directly.
 `interreal.motion_fit` turns those poses into a hinge or a slide decided by the geometry (does the part turn about
 one axis, or translate along one line?), measures every registered frame's state from its displacement, and uses
 the labels only to fix the ends and the direction; labels that disagree with the geometry are named as likely
@@ -36,13 +40,15 @@ from .errors import InputError
 from .layout import MOTIONS_DIR  # DS/motions/<object>/: the part reconstructions
 from .motion_fit import FLAG_TOL, PartViews, fit_motion, part_point
 from .motion_pnp import pnp_views, reference_frames
+from .motion_silhouette import measure_silhouettes
 from .options import add_flags, config_from, option, values_from_args
 from .report import StageReport, finished_with, fingerprint, read_report, warning_lines
 from .sfm import colmap
 from .sfm.colmap import NativeLog
 from .transients import excluded
 
-ROUTES = ("sfm", "pnp")  # MotionConfig.route: the route tried first (the other when it gives no accepted motion)
+# MotionConfig.route: the route tried first; the others follow, in this order, while no motion is accepted
+ROUTES = ("sfm", "pnp", "silhouette")
 PNP_LONG_SIDE = 800  # the PnP route reads the images at most this large
 MAX_STATE_RMSE = 0.1  # an accepted motion's labels within this RMSE: no retry with another mapper seed
 __all__ = ["PartViews", "fit_motion", "estimate_motions", "measure_part", "MotionConfig"]
@@ -63,9 +69,10 @@ class MotionConfig:
     attempts: int = 3  # mapper runs per part at most (a bent or flipped model of a planar part gives bad states)
     max_frames: int = 100  # frames of a part matched at most (evenly spread, labelled frames kept): time is bounded
     budget_s: float = 110.0  # another mapper attempt starts only before half of this has passed
-    route: str = option("sfm", "the route tried first (the other when it gives no accepted motion): sfm (the "
-                               "part's own SfM) or pnp (known-camera PnP: seconds, needs a stretch where the part "
-                               "rests)", choices=ROUTES)
+    route: str = option("sfm", "the route tried first (the others when it gives no accepted motion): sfm (the "
+                               "part's own SfM), pnp (known-camera PnP: seconds, needs a stretch where the part "
+                               "rests) or silhouette (its masks against the known cameras: for a plain part with "
+                               "a flat front)", choices=ROUTES)
     num_threads: int = -1
     verbose: bool = option(False, "COLMAP's own log on the terminal")
 
@@ -196,7 +203,7 @@ def _better(fig: dict[str, Any], best: dict[str, Any]) -> bool:
 
 
 def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known: np.ndarray,
-                 cfg: MotionConfig, step: Any = None, labelled: np.ndarray | None = None
+                 cfg: MotionConfig, step: Any = None, labelled: np.ndarray | None = None, obj: int | None = None
                  ) -> tuple[Articulation | None, dict[str, Any]]:
     """The part's motion; states, known (N,) over the dataset's frames, `labelled` (N,) the frames a person
     labelled (default `known`). Two routes to the part's per-frame poses, the same geometric fit after either
@@ -205,15 +212,17 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
       (seconds; needs some texture and a stretch where the part rests);
     - sfm: the part's own reconstruction, mapped with up to `cfg.attempts` seeds on the same matches until a motion
       is accepted (a nearly planar part sometimes comes out bent or with a flipped view); another attempt starts
-      only before half of `cfg.budget_s` has passed.
-    `cfg.route` is tried first, the other when it gives no accepted motion. The best fit is returned (None when no
+      only before half of `cfg.budget_s` has passed;
+    - silhouette (`interreal.motion_silhouette`, needs `obj`, the object's index): its masks against the known
+      cameras, for a part too plain for either (seconds).
+    `cfg.route` is tried first, the others in `ROUTES` order while none gives an accepted motion. The best fit is returned (None when no
     route registered enough frames with a known state).
     step(text): called as each phase starts (a progress bar)."""
     step = step or (lambda text: None)
     labelled = known if labelled is None else labelled
     start = time.monotonic()
     best: tuple[Articulation | None, dict[str, Any]] = (None, {"registered": 0})
-    order = {"sfm": ("sfm", "pnp"), "pnp": ("pnp", "sfm")}[cfg.route]
+    order = [cfg.route] + [r for r in ROUTES if r != cfg.route]
     tried: dict[str, dict[str, Any]] = {}
     for route in order:
         if best[0] is not None and best[1]["accepted"]:
@@ -222,10 +231,16 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
         if route == "pnp":
             step("known-camera PnP")
             motion, fig = measure_part_pnp(ds, names, part / "masks", states, known, labelled, cfg)
+        elif route == "silhouette":
+            if obj is None:
+                continue
+            step("silhouettes")
+            motion, fig = measure_silhouettes(ds, obj, states, known, labelled, cfg.min_pixels)
         else:
             motion, fig = _measure_part_sfm(pc, ds, names, part, states, known, labelled, cfg, step, start)
         tried[route] = {"registered": fig.get("registered", 0), "kind": None if motion is None else motion.kind,
-                        "accepted": bool(fig.get("accepted")), "reason": fig.get("reason"),
+                        "accepted": bool(fig.get("accepted")),
+                        "reason": fig.get("reason") or fig.get("silhouette_reason"),
                         "seconds": round(time.monotonic() - t0, 1)}
         if motion is not None and (best[0] is None or _better(fig, best[1])):
             best = (motion, fig)
@@ -370,7 +385,7 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                     continue
                 with NativeLog(part / "colmap.log", cfg.verbose) as log:
                     # on the terminal even while COLMAP's log (fd 2) goes to the file: a part takes minutes
-                    with tqdm(total=2 + cfg.attempts, desc=f"motions '{name}'", file=log.term, leave=False,
+                    with tqdm(total=3 + cfg.attempts, desc=f"motions '{name}'", file=log.term, leave=False,
                               unit="phase") as bar:
                         def step(text: str) -> None:
                             if text != "matching":
@@ -378,15 +393,16 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                             bar.set_postfix_str(text)
 
                         motion, fig = measure_part(pc, ds, names, part, states[:, o], known[:, o], cfg, step,
-                                                   labelled=given[:, o])
+                                                   labelled=given[:, o], obj=o)
                 fids = [f.fid for f in ds.frames]
                 st.update({k: v if not isinstance(v, float) or np.isfinite(v) else None for k, v in fig.items()})
                 if motion is None:
                     rep.warn(f"'{name}': its own reconstruction registered only {fig.get('sfm_registered', 0)} "
                              f"and known-camera PnP located {fig.get('pnp_registered', 0)} of the {len(names)} "
                              f"frames it shows in (need {cfg.min_registered}, {cfg.min_known} with a known state), "
-                             f"best of {fig['attempts']} reconstructions: no motion measured; "
-                             f"label more frames where it moves, or film it with more texture in view",
+                             f"best of {fig['attempts']} reconstructions; its silhouettes: "
+                             f"{fig.get('routes', {}).get('silhouette', {}).get('reason') or 'not tried'}: no motion "
+                             f"measured; label more frames where it moves, or film it with more texture in view",
                              cause="motion-unregistered", object=name)
                     continue
                 st["kind"] = motion.kind

@@ -1,0 +1,303 @@
+"""A part's motion from its silhouettes against the known cameras: the route for parts too plain to reconstruct.
+
+A grey cabinet door or a plain drawer front gives SfM and PnP nothing to match (9 of 200 frames registered on a
+real door; seeds 4 and 6 of the simulator: no drawer motion at all), but its masks are good: colour separates it
+from its surroundings. Its front is a flat quadrilateral, so:
+1. the front's four corners are found in each frame whose known state is the reference state (lines fitted to
+   the mask's outline, intersected) and triangulated with the known cameras (frames at other known states join
+   as `corner + state x D` when the part slides; `FACE_PX` and `MIN_ANGLE_DEG` refuse a front the views do not
+   pin down);
+2. each candidate motion (a slide along the front's normal; a hinge about each of its four edges) predicts the
+   part's silhouette at any displacement: a slid drawer shows the prism between its front at rest and its front
+   moved (the hull of the two), a turned door its turned front;
+3. every frame's displacement is the one whose predicted silhouette overlaps the mask best (IoU), and the
+   candidate with the best mean overlap is the motion: the geometry decides hinge or slide, the labels only
+   orient it (`motion_fit.articulate`).
+Measured on the simulator's plain drawers (seeds 4 and 6, `recipes/bench_real.py` does not cover them): the notes
+of issue 24 give the figures.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .conventions import opengl_to_opencv
+from .dataset import Articulation
+from .motion_fit import Fit, articulate
+
+FACE_PX = 2.0          # the front's corners must reproject within this (median, full-size pixels) ...
+MIN_ANGLE_DEG = 2.0    # ... and be seen from directions at least this far apart
+MIN_QUADS = 6          # frames whose mask gave four corners, at least
+QUAD_IOU = 0.95        # ... a quadrilateral that covers the mask this well (else the mask is some other shape)
+# the chosen motion's silhouettes must overlap the masks this well on average: on seven simulated captures the
+# drawers measured right overlapped 0.86-0.90; a door at 0.75 (its edge and inside in view) was 0.28 off in state
+MIN_IOU = 0.8
+SIDE = 480             # masks are compared at most this large (long side)
+SLIDE_REACH = 2.0      # slide displacements searched, in lengths of the front's diagonal
+HINGE_SPAN_DEG = 120.0    # hinge angles searched, either way
+STEPS = 45             # grid points of the per-frame search (then refined by a parabola)
+
+
+@dataclass
+class Views:
+    """Per frame: the part's mask (h, w) bool, world -> camera (4, 4) in OpenCV axes; one K (3, 3)."""
+
+    masks: list[np.ndarray]
+    w2c: np.ndarray
+    K: np.ndarray
+
+
+def front_corners(mask: np.ndarray) -> np.ndarray | None:
+    """(4, 2) corners of a mask that is one quadrilateral (clockwise from the top left), sub-pixel: lines fitted to
+    the middle of each side of its outline, intersected. None when it touches the border or has no four sides."""
+    m = mask.astype(np.uint8)
+    if m.sum() < 100 or m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any():
+        return None
+    contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    outline = max(contours, key=cv2.contourArea)
+    hull = cv2.convexHull(outline)
+    quad = None
+    for eps in (0.02, 0.03, 0.05, 0.08):
+        q = cv2.approxPolyDP(hull, eps * cv2.arcLength(hull, True), True).reshape(-1, 2).astype(float)
+        if len(q) == 4:
+            quad = q
+            break
+    if quad is None:
+        return None
+    mid = quad.mean(0)
+    quad = quad[np.argsort(np.arctan2(quad[:, 1] - mid[1], quad[:, 0] - mid[0]))]
+    quad = np.roll(quad, -int(np.argmin(quad.sum(1))), 0)
+    pts = outline.reshape(-1, 2).astype(float)
+    lines = []
+    for e in range(4):
+        a, b = quad[e], quad[(e + 1) % 4]
+        length = float(np.linalg.norm(b - a))
+        u = (b - a) / length
+        along, across = (pts - a) @ u, (pts - a) @ np.array([-u[1], u[0]])
+        sel = (along > 0.15 * length) & (along < 0.85 * length) & (np.abs(across) < max(2.0, 0.05 * length))
+        if sel.sum() < 5:
+            return None
+        vx, vy, x0, y0 = cv2.fitLine(pts[sel].astype(np.float32), cv2.DIST_HUBER, 0, 0.01, 0.01).ravel()
+        lines.append(np.cross([x0, y0, 1.0], [x0 + vx, y0 + vy, 1.0]))
+    corners = np.array([c[:2] / c[2] for c in (np.cross(lines[e - 1], lines[e]) for e in range(4))])
+    fill = np.zeros_like(m)
+    cv2.fillConvexPoly(fill, np.round(corners * 16).astype(np.int32), 1, shift=4)
+    inter, union = int((fill & m).sum()), int((fill | m).sum())
+    return corners if union and inter / union >= QUAD_IOU else None  # else: no quadrilateral (an open drawer's box)
+
+
+def _same_order(quads: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+    """One corner order for all frames: each frame's cyclic shift closest to the previous frame's."""
+    out, prev = {}, None
+    for i in sorted(quads):
+        q = quads[i]
+        if prev is not None:
+            q = min((np.roll(q, -r, 0) for r in range(4)), key=lambda z: float(np.linalg.norm(z - prev)))
+        out[i] = prev = q
+    return out
+
+
+def triangulate_front(quads: dict[int, np.ndarray], proj: dict[int, np.ndarray], states: dict[int, float],
+                      slide: bool) -> np.ndarray:
+    """(4, 3) corners at state 0: linear least squares over the frames' corners; with `slide`, frames at other
+    states add `state x D` to every corner (D solved with them), else all frames must show the same state."""
+    n = 15 if slide else 12
+    rows, rhs = [], []
+    for i, q in quads.items():
+        m, p4 = proj[i][:, :3], proj[i][:, 3]
+        for c in range(4):
+            for coord, k in ((q[c, 0], 0), (q[c, 1], 1)):
+                a = coord * m[2] - m[k]
+                r = np.zeros(n)
+                r[3 * c:3 * c + 3] = a
+                if slide:
+                    r[12:] = states[i] * a
+                rows.append(r)
+                rhs.append(-(coord * p4[2] - p4[k]))
+    sol = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0]
+    return sol[:12].reshape(4, 3)
+
+
+def _reprojection(face: np.ndarray, q: np.ndarray, proj: np.ndarray) -> np.ndarray:
+    p = (proj @ np.c_[face, np.ones(4)].T).T
+    return np.linalg.norm(p[:, :2] / p[:, 2:3] - q, axis=1)
+
+
+def find_front(views: Views, states: np.ndarray, known: np.ndarray) -> tuple[np.ndarray | None, dict[str, Any]]:
+    """The front's corners (4, 3) in the world at state 0 (None and the reason when the views do not fix it)."""
+    quads = {i: q for i in np.flatnonzero(known) if (q := front_corners(views.masks[i])) is not None}
+    if len(quads) < MIN_QUADS:
+        return None, {"silhouette_reason": f"the part's front showed four corners in {len(quads)} frames "
+                                           f"with a known state (need {MIN_QUADS})", "front_frames": len(quads)}
+    quads = _same_order(quads)
+    proj = {i: views.K @ views.w2c[i][:3] for i in quads}
+    st = {i: float(states[i]) for i in quads}
+    ref = min(set(st.values()), key=lambda v: (-sum(s == v for s in st.values()), v))  # the most shown state
+    options = []
+    for slide in (True, False):  # a slide's frames at other states help; a hinge's only its reference state's
+        use = dict(quads) if slide else {i: q for i, q in quads.items() if st[i] == ref}
+        if len(use) < MIN_QUADS or (slide and len(set(st[i] for i in use)) < 2):
+            continue
+        shifted = {i: st[i] - (0.0 if slide else ref) for i in use}
+        for _ in range(3):  # drop frames whose corners miss by more than 3x the median
+            face = triangulate_front(use, proj, shifted, slide)
+            err = {i: float(_reprojection(face, use[i], proj[i]).max()) for i in use}
+            keep = {i: q for i, q in use.items() if err[i] <= max(3.0, 3.0 * np.median(list(err.values())))}
+            if len(keep) == len(use) or len(keep) < MIN_QUADS:
+                break
+            use = keep
+        face = triangulate_front(use, proj, shifted, slide)
+        med = float(np.median([_reprojection(face, use[i], proj[i]) for i in use]))
+        centres = np.array([np.linalg.inv(views.w2c[i])[:3, 3] for i in use])
+        rays = face.mean(0) - centres
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        angle = float(np.degrees(np.arccos(np.clip(rays @ rays.T, -1, 1)).max()))
+        options.append((med > FACE_PX or angle < MIN_ANGLE_DEG, med, face, len(use), angle, ref if not slide else 0.0))
+    if not options:
+        return None, {"silhouette_reason": "too few frames at one known state showed the part's front",
+                      "front_frames": len(quads)}
+    bad, med, face, n, angle, at = min(options, key=lambda o: (o[0], o[1]))  # pinned down first, then closest
+    fig = {"front_frames": n, "front_px": round(med, 2), "front_angle_deg": round(angle, 1), "front_state": at}
+    if bad:
+        fig["silhouette_reason"] = (f"the part's front is not pinned down by the views (corners reproject within "
+                                    f"{med:.1f} px, need {FACE_PX}; seen over {angle:.1f} deg, need {MIN_ANGLE_DEG})")
+        return None, fig
+    return face, fig
+
+
+@dataclass
+class Candidate:
+    """A motion to try: a slide along `axis`, or a hinge about `axis` through `point`."""
+
+    kind: str
+    axis: np.ndarray
+    point: np.ndarray
+
+    def moved(self, face: np.ndarray, x: float) -> np.ndarray:
+        """The points whose projections' hull is the part's silhouette at displacement x (world units or rad)."""
+        if self.kind == "slide":
+            return np.concatenate([face, face + x * self.axis])
+        rot = Rotation.from_rotvec(self.axis * x).as_matrix()
+        return (face - self.point) @ rot.T + self.point
+
+
+def candidates(face: np.ndarray, w2c: np.ndarray) -> list[Candidate]:
+    """A slide along the front's normal (towards the cameras) and a hinge about each of its edges."""
+    normal = np.cross(face[1] - face[0], face[3] - face[0])
+    normal /= np.linalg.norm(normal)
+    cams = np.array([np.linalg.inv(m)[:3, 3] for m in w2c]).mean(0)
+    if normal @ (cams - face.mean(0)) < 0:
+        normal = -normal
+    out = [Candidate("slide", normal, face.mean(0))]
+    for e in range(4):
+        edge = face[(e + 1) % 4] - face[e]
+        out.append(Candidate("hinge", edge / np.linalg.norm(edge), face[e].copy()))
+    return out
+
+
+class Silhouettes:
+    """Each frame's mask at most `SIDE` large, cropped to the part with a margin: the overlap of a predicted
+    silhouette is counted in the crop only (a part is a small share of the image)."""
+
+    def __init__(self, views: Views, frames: list[int]):
+        h, w = views.masks[0].shape
+        self.scale = min(1.0, SIDE / max(h, w))
+        k = views.K.copy()
+        k[:2] *= self.scale
+        self.proj = {i: k @ views.w2c[i][:3] for i in frames}
+        self.crop: dict[int, tuple[int, int, np.ndarray]] = {}
+        for i in frames:
+            m = views.masks[i]
+            if self.scale < 1:
+                m = cv2.resize(m.astype(np.uint8), None, fx=self.scale, fy=self.scale,
+                               interpolation=cv2.INTER_AREA) > 0
+            ys, xs = np.nonzero(m)
+            if not len(xs):
+                continue
+            mx, my = (np.ptp(xs) + 1) // 2 + 2, (np.ptp(ys) + 1) // 2 + 2
+            x0, y0 = max(0, xs.min() - mx), max(0, ys.min() - my)
+            self.crop[i] = (x0, y0, m[y0:ys.max() + 1 + my, x0:xs.max() + 1 + mx])
+
+    def iou(self, pts: np.ndarray, i: int) -> float:
+        x0, y0, m = self.crop[i]
+        p = (self.proj[i] @ np.c_[pts, np.ones(len(pts))].T).T
+        if (p[:, 2] <= 1e-6).any():
+            return 0.0
+        uv = p[:, :2] / p[:, 2:3] - (x0, y0)
+        pred = np.zeros(m.shape, np.uint8)
+        cv2.fillConvexPoly(pred, cv2.convexHull(np.round(uv * 16).astype(np.int32)), 1, shift=4)
+        pred = pred > 0
+        union = int((pred | m).sum())
+        return float((pred & m).sum()) / union if union else 0.0
+
+
+def best_displacement(sil: Silhouettes, cand: Candidate, face: np.ndarray, i: int, grid: np.ndarray
+                      ) -> tuple[float, float]:
+    """(displacement, IoU) of frame i: the best grid point, refined by a parabola through it and its neighbours."""
+    vals = np.array([sil.iou(cand.moved(face, x), i) for x in grid])
+    j = int(np.argmax(vals))
+    x = float(grid[j])
+    if 0 < j < len(grid) - 1:
+        a, b, c = vals[j - 1], vals[j], vals[j + 1]
+        den = a - 2 * b + c
+        if den < 0:
+            x += 0.5 * (a - c) / den * float(grid[1] - grid[0])
+    return x, float(vals[j])
+
+
+def silhouette_motion(views: Views, states: np.ndarray, known: np.ndarray, frames: list[int]
+                      ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+    """The best candidate's per-frame displacements over `frames` (positions into views), or None and why.
+
+    Returns {"kind", "axis", "point", "d" (F,), "ok" (F,), "step"} and figures (per candidate mean IoU)."""
+    face, fig = find_front(views, states, known)
+    if face is None:
+        return None, fig
+    sil = Silhouettes(views, frames)
+    shown = [i for i in frames if i in sil.crop]
+    diag = float(np.linalg.norm(face[2] - face[0]))
+    # a front found at state 0 is where a drawer rests closed: it cannot slide behind it (a mask that spills onto
+    # the cabinet above would otherwise read as the drawer pushed in, and stretch the range)
+    low = 0.0 if fig["front_state"] == 0 else -SLIDE_REACH
+    grids = {"slide": np.linspace(low, SLIDE_REACH, STEPS) * diag,
+             "hinge": np.radians(np.linspace(-HINGE_SPAN_DEG, HINGE_SPAN_DEG, STEPS))}
+    results = []
+    for cand in candidates(face, views.w2c[shown]):
+        found = [best_displacement(sil, cand, face, i, grids[cand.kind]) for i in shown]
+        results.append((float(np.mean([v for _, v in found])), cand, np.array([x for x, _ in found])))
+    fig["silhouette_iou"] = {f"{c.kind}{'' if c.kind == 'slide' else k}": round(v, 3)
+                             for k, (v, c, _) in enumerate(results)}
+    score, cand, d = max(results, key=lambda r: r[0])
+    fig["silhouette_mean_iou"] = round(score, 3)
+    if score < MIN_IOU:
+        fig["silhouette_reason"] = f"no motion's silhouettes overlap the masks well (best {score:.2f}, need {MIN_IOU})"
+        return None, fig
+    pos = {i: k for k, i in enumerate(shown)}
+    full = np.array([d[pos[i]] if i in pos else np.nan for i in frames])
+    grid = grids[cand.kind]
+    return {"kind": cand.kind, "axis": cand.axis, "point": cand.point, "d": np.nan_to_num(full),
+            "ok": np.isfinite(full), "step": float(grid[1] - grid[0])}, fig
+
+
+def measure_silhouettes(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: np.ndarray,
+                        min_pixels: int = 400) -> tuple[Articulation | None, dict[str, Any]]:
+    """Object `obj`'s motion from its masks over the dataset `ds` and its known cameras; states, known, labelled
+    (N,) over the dataset's frames. (None, figures with `silhouette_reason`) when the route cannot measure it."""
+    masks = [ds.load_mask(f)[..., obj] for f in ds.frames]
+    w2c = np.stack([np.linalg.inv(opengl_to_opencv(f.c2w)) for f in ds.frames])
+    views = Views(masks, w2c, ds.intrinsics.K())
+    frames = [i for i, m in enumerate(masks) if int(m.sum()) >= min_pixels]
+    res, fig = silhouette_motion(views, states, known, frames)
+    fig["route"] = "silhouette"
+    if res is None:
+        return None, dict(fig, registered=0)
+    n = len(frames)
+    fit = Fit(res["kind"], res["axis"], res["point"], res["d"], res["ok"], np.full(n, res["step"]), 1.0, {})
+    fig.update(registered=int(res["ok"].sum()), kind_from="silhouettes")
+    at = np.array(frames)
+    return articulate(fit, at, states[at], known[at], labelled[at], fig)

@@ -1,0 +1,114 @@
+"""The silhouette route of `interreal motions`: a plain part's motion from its masks and the known cameras."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from interreal.conventions import opencv_to_opengl
+from interreal.dataset import known_states
+from interreal.motion_silhouette import front_corners, measure_silhouettes
+
+W, H = 640, 480
+K = np.array([[600.0, 0, W / 2], [0, 600.0, H / 2], [0, 0, 1]])
+FRONT = np.array([[-0.2, 0.1, 0.0], [0.2, 0.1, 0.0], [0.2, -0.1, 0.0], [-0.2, -0.1, 0.0]])  # y up, facing +z
+
+
+def look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """camera -> world (4, 4), OpenCV axes (x right, y down, z forward)."""
+    z = target - centre
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.stack([x, y, z], 1)
+    c2w[:3, 3] = centre
+    return c2w
+
+
+def truth_states(n: int) -> np.ndarray:
+    """Rests closed, opens, rests open, half closes, rests."""
+    s = np.zeros(n)
+    s[15:25] = np.linspace(0, 1, 10)
+    s[25:35] = 1.0
+    s[35:45] = np.linspace(1, 0.4, 10)
+    s[45:] = 0.4
+    return s
+
+
+def capture(kind: str, sweep_deg: float = 60.0, n: int = 50):
+    """A duck-typed dataset of n frames: cameras on an arc 1.5 units away, and the part's masks: a drawer (the
+    prism its front sweeps, 0.15 units at state 1) or a door (its front turned up to 70 deg about its left edge)."""
+    states = truth_states(n)
+    frames, masks = [], []
+    for i, s in enumerate(states):
+        az = np.radians(-sweep_deg / 2 + sweep_deg * i / (n - 1))
+        centre = 1.5 * np.array([np.sin(az) * np.cos(0.3), np.sin(0.3), np.cos(az) * np.cos(0.3)])
+        c2w = look_at(centre, np.zeros(3))
+        if kind == "slide":
+            pts = np.concatenate([FRONT, FRONT + [0.0, 0.0, 0.15 * s]])
+        else:
+            rot = Rotation.from_rotvec([0.0, -np.radians(70) * s, 0.0]).as_matrix()
+            pts = (FRONT - FRONT[0]) @ rot.T + FRONT[0]
+        w2c = np.linalg.inv(c2w)
+        p = (K @ (w2c[:3, :3] @ pts.T + w2c[:3, 3:])).T
+        m = np.zeros((H, W), np.uint8)
+        cv2.fillConvexPoly(m, cv2.convexHull(np.round(p[:, :2] / p[:, 2:] * 16).astype(np.int32)), 1, shift=4)
+        frames.append(SimpleNamespace(c2w=opencv_to_opengl(c2w), index=i))
+        masks.append(m[..., None] > 0)
+    ds = SimpleNamespace(frames=frames, load_mask=lambda f: masks[f.index],
+                         intrinsics=SimpleNamespace(K=lambda: K))
+    labelled = np.zeros(n, bool)
+    labelled[[0, 5, 10, 14, 25, 30, 34, 45, 49]] = True
+    st, kn = known_states(np.arange(n, dtype=float), np.where(labelled, states, 0)[:, None], labelled[:, None])
+    return ds, states, st[:, 0], kn[:, 0], labelled
+
+
+def measured(fig: dict) -> tuple[np.ndarray, np.ndarray]:
+    rows = np.array(fig["frame_states"])
+    return rows[:, 0].astype(int), rows[:, 1]
+
+
+def test_front_corners_are_sub_pixel():
+    m = np.zeros((120, 160), np.uint8)
+    quad = np.array([[40.3, 30.6], [120.2, 25.1], [118.7, 90.4], [42.5, 95.8]])
+    cv2.fillConvexPoly(m, np.round(quad * 16).astype(np.int32), 1, shift=4)
+    got = front_corners(m > 0)
+    assert got is not None and np.abs(got - quad).max() < 0.8, got
+    m[:, :45] = 1                                    # touches the border: a cut part has no trustworthy corners
+    assert front_corners(m > 0) is None
+
+
+def test_plain_drawer_is_measured_as_a_slide_from_its_silhouettes():
+    ds, truth, st, kn, labelled = capture("slide")
+    motion, fig = measure_silhouettes(ds, 0, st, kn, labelled, min_pixels=50)
+    assert motion is not None and fig["accepted"], fig
+    assert motion.kind == "slide"
+    assert np.degrees(np.arccos(abs(motion.axis @ [0.0, 0.0, 1.0]))) < 1.0, motion.axis
+    assert abs(motion.range - 0.15) / 0.15 < 0.03, motion.range
+    frames, states = measured(fig)
+    assert np.sqrt(np.mean((states - truth[frames]) ** 2)) < 0.03
+    assert fig["silhouette_iou"]["slide"] > max(v for k, v in fig["silhouette_iou"].items() if k != "slide")
+
+
+def test_plain_door_is_measured_as_a_hinge_about_its_edge():
+    ds, truth, st, kn, labelled = capture("hinge")
+    motion, fig = measure_silhouettes(ds, 0, st, kn, labelled, min_pixels=50)
+    assert motion is not None and fig["accepted"], fig
+    assert motion.kind == "hinge"
+    assert np.degrees(np.arccos(abs(motion.axis @ [0.0, 1.0, 0.0]))) < 1.0, motion.axis
+    assert abs(np.degrees(motion.range) - 70) < 3, np.degrees(motion.range)
+    off = motion.origin - FRONT[0]
+    assert np.linalg.norm(off - (off @ motion.axis) * motion.axis) < 0.01        # on the left edge
+    frames, states = measured(fig)
+    assert np.sqrt(np.mean((states - truth[frames]) ** 2)) < 0.05
+
+
+def test_views_that_barely_move_are_refused_with_the_cause():
+    ds, truth, st, kn, labelled = capture("slide", sweep_deg=1.0)
+    motion, fig = measure_silhouettes(ds, 0, st, kn, labelled, min_pixels=50)
+    assert motion is None and "not pinned down" in fig["silhouette_reason"], fig

@@ -68,9 +68,18 @@ def capture(kind: str, sweep_deg: float = 60.0, n: int = 50):
     return ds, states, st[:, 0], kn[:, 0], labelled
 
 
-def measured(fig: dict) -> tuple[np.ndarray, np.ndarray]:
+def measure(kind: str) -> tuple:
+    """The route on a simulated plain part: (motion, figures, state RMSE against the truth); the right kind."""
+    ds, truth, st, kn, labelled = capture(kind)
+    motion, fig = measure_silhouettes(ds, 0, st, kn, labelled, min_pixels=50)
+    assert motion is not None and fig["accepted"], fig
+    assert motion.kind == kind
     rows = np.array(fig["frame_states"])
-    return rows[:, 0].astype(int), rows[:, 1]
+    return motion, fig, float(np.sqrt(np.mean((rows[:, 1] - truth[rows[:, 0].astype(int)]) ** 2)))
+
+
+def off_deg(axis: np.ndarray, truth: list[float]) -> float:
+    return float(np.degrees(np.arccos(min(1.0, abs(axis @ truth)))))
 
 
 def test_front_corners_are_sub_pixel():
@@ -84,31 +93,34 @@ def test_front_corners_are_sub_pixel():
 
 
 def test_plain_drawer_is_measured_as_a_slide_from_its_silhouettes():
-    ds, truth, st, kn, labelled = capture("slide")
-    motion, fig = measure_silhouettes(ds, 0, st, kn, labelled, min_pixels=50)
-    assert motion is not None and fig["accepted"], fig
-    assert motion.kind == "slide"
-    assert np.degrees(np.arccos(abs(motion.axis @ [0.0, 0.0, 1.0]))) < 1.0, motion.axis
+    motion, fig, rmse = measure("slide")
+    assert off_deg(motion.axis, [0.0, 0.0, 1.0]) < 1.0, motion.axis
     assert abs(motion.range - 0.15) / 0.15 < 0.03, motion.range
-    frames, states = measured(fig)
-    assert np.sqrt(np.mean((states - truth[frames]) ** 2)) < 0.03
+    assert rmse < 0.03
     assert fig["silhouette_iou"]["slide"] > max(v for k, v in fig["silhouette_iou"].items() if k != "slide")
 
 
 def test_plain_door_is_measured_as_a_hinge_about_its_edge():
-    ds, truth, st, kn, labelled = capture("hinge")
-    motion, fig = measure_silhouettes(ds, 0, st, kn, labelled, min_pixels=50)
-    assert motion is not None and fig["accepted"], fig
-    assert motion.kind == "hinge"
-    assert np.degrees(np.arccos(abs(motion.axis @ [0.0, 1.0, 0.0]))) < 1.0, motion.axis
+    motion, fig, rmse = measure("hinge")
+    assert off_deg(motion.axis, [0.0, 1.0, 0.0]) < 1.0, motion.axis
     assert abs(np.degrees(motion.range) - 70) < 3, np.degrees(motion.range)
     off = motion.origin - FRONT[0]
     assert np.linalg.norm(off - (off @ motion.axis) * motion.axis) < 0.01        # on the left edge
-    frames, states = measured(fig)
-    assert np.sqrt(np.mean((states - truth[frames]) ** 2)) < 0.05
+    assert rmse < 0.05
 
 
 def test_views_that_barely_move_are_refused_with_the_cause():
     ds, truth, st, kn, labelled = capture("slide", sweep_deg=1.0)
     motion, fig = measure_silhouettes(ds, 0, st, kn, labelled, min_pixels=50)
     assert motion is None and "not pinned down" in fig["silhouette_reason"], fig
+
+
+def test_motions_stage_takes_the_silhouette_route(tmp_path):
+    """`--route silhouette` tries it first; an accepted motion ends the search (no SfM, no PnP is run)."""
+    from interreal import motions
+
+    ds, truth, st, kn, labelled = capture("slide")
+    cfg = motions.MotionConfig(route="silhouette", min_pixels=50)
+    motion, fig = motions.measure_part(None, ds, [], tmp_path, st, kn, cfg, labelled=labelled, obj=0)
+    assert motion is not None and motion.kind == "slide" and fig["accepted"]
+    assert list(fig["routes"]) == ["silhouette"] and fig["routes"]["silhouette"]["accepted"]

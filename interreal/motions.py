@@ -203,8 +203,8 @@ def _better(fig: dict[str, Any], best: dict[str, Any]) -> bool:
 
 
 def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known: np.ndarray,
-                 cfg: MotionConfig, step: Any = None, labelled: np.ndarray | None = None, obj: int | None = None
-                 ) -> tuple[Articulation | None, dict[str, Any]]:
+                 cfg: MotionConfig, step: Any = None, labelled: np.ndarray | None = None, obj: int | None = None,
+                 routes: tuple[str, ...] | None = None) -> tuple[Articulation | None, dict[str, Any]]:
     """The part's motion; states, known (N,) over the dataset's frames, `labelled` (N,) the frames a person
     labelled (default `known`). Two routes to the part's per-frame poses, the same geometric fit after either
     (`motion_fit.fit_motion`: the geometry decides and measures, the labels orient):
@@ -215,14 +215,15 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
       only before half of `cfg.budget_s` has passed;
     - silhouette (`interreal.motion_silhouette`, needs `obj`, the object's index): its masks against the known
       cameras, for a part too plain for either (seconds).
-    `cfg.route` is tried first, the others in `ROUTES` order while none gives an accepted motion. The best fit is returned (None when no
+    `cfg.route` is tried first, the others in `ROUTES` order while none gives an accepted motion (`routes`: only
+    these, in this order; a benchmark measures each alone). The best fit is returned (None when no
     route registered enough frames with a known state).
     step(text): called as each phase starts (a progress bar)."""
     step = step or (lambda text: None)
     labelled = known if labelled is None else labelled
     start = time.monotonic()
     best: tuple[Articulation | None, dict[str, Any]] = (None, {"registered": 0})
-    order = [cfg.route] + [r for r in ROUTES if r != cfg.route]
+    order = list(routes) if routes else [cfg.route] + [r for r in ROUTES if r != cfg.route]
     tried: dict[str, dict[str, Any]] = {}
     for route in order:
         if best[0] is not None and best[1]["accepted"]:

@@ -5,7 +5,7 @@ real door; seeds 4 and 6 of the simulator: no drawer motion at all), but its mas
 from its surroundings. Its front is a flat quadrilateral, so:
 1. the front's four corners are found in each frame whose known state is the reference state (lines fitted to
    the mask's outline, intersected) and triangulated with the known cameras (frames at other known states join
-   as `corner + state x D` when the part slides; `FACE_PX` and `MIN_ANGLE_DEG` refuse a front the views do not
+   as `corner + state x D` when the part slides; `FACE_PX` and `MAX_TILT_DEG` refuse a front the views do not
    pin down);
 2. each candidate motion (a slide along the front's normal; a hinge about each of its four edges) predicts the
    part's silhouette at any displacement: a slid drawer shows the prism between its front at rest and its front
@@ -31,8 +31,9 @@ from .dataset import Articulation
 from .motion_fit import Fit, articulate
 
 FACE_PX = 2.0          # the front's corners must reproject within this (median, full-size pixels) ...
-MIN_ANGLE_DEG = 2.0    # ... and be seen from directions at least this far apart
+MAX_TILT_DEG = 3.0     # ... and its normal turn less than this when its corners move by a pixel
 MIN_QUADS = 6          # frames whose mask gave four corners, at least
+REST_RUN = 8           # ... or this many in a row (within 1.5x as many frames) where the front rests
 QUAD_IOU = 0.95        # ... a quadrilateral that covers the mask this well (else the mask is some other shape)
 # the chosen motion's silhouettes must overlap the masks this well on average: on seven simulated captures the
 # drawers measured right overlapped 0.86-0.90; a door at 0.75 (its edge and inside in view) was 0.28 off in state
@@ -128,44 +129,72 @@ def _reprojection(face: np.ndarray, q: np.ndarray, proj: np.ndarray) -> np.ndarr
     return np.linalg.norm(p[:, :2] / p[:, 2:3] - q, axis=1)
 
 
-def find_front(views: Views, states: np.ndarray, known: np.ndarray) -> tuple[np.ndarray | None, dict[str, Any]]:
-    """The front's corners (4, 3) in the world at state 0 (None and the reason when the views do not fix it)."""
-    quads = {i: q for i in np.flatnonzero(known) if (q := front_corners(views.masks[i])) is not None}
-    if len(quads) < MIN_QUADS:
-        return None, {"silhouette_reason": f"the part's front showed four corners in {len(quads)} frames "
-                                           f"with a known state (need {MIN_QUADS})", "front_frames": len(quads)}
-    quads = _same_order(quads)
-    proj = {i: views.K @ views.w2c[i][:3] for i in quads}
-    st = {i: float(states[i]) for i in quads}
-    ref = min(set(st.values()), key=lambda v: (-sum(s == v for s in st.values()), v))  # the most shown state
-    options = []
-    for slide in (True, False):  # a slide's frames at other states help; a hinge's only its reference state's
-        use = dict(quads) if slide else {i: q for i, q in quads.items() if st[i] == ref}
-        if len(use) < MIN_QUADS or (slide and len(set(st[i] for i in use)) < 2):
-            continue
-        shifted = {i: st[i] - (0.0 if slide else ref) for i in use}
-        for _ in range(3):  # drop frames whose corners miss by more than 3x the median
-            face = triangulate_front(use, proj, shifted, slide)
-            err = {i: float(_reprojection(face, use[i], proj[i]).max()) for i in use}
-            keep = {i: q for i, q in use.items() if err[i] <= max(3.0, 3.0 * np.median(list(err.values())))}
-            if len(keep) == len(use) or len(keep) < MIN_QUADS:
-                break
-            use = keep
+def _fit_front(views: Views, use: dict[int, np.ndarray], proj: dict[int, np.ndarray], shifted: dict[int, float],
+               slide: bool) -> tuple[np.ndarray, float, float, int]:
+    """(corners, median reprojection px, tilt per pixel of corner noise (deg), frames kept) from `use`'s corners, frames
+    whose corners miss by more than 3x the median dropped (twice at most)."""
+    for _ in range(3):
         face = triangulate_front(use, proj, shifted, slide)
-        med = float(np.median([_reprojection(face, use[i], proj[i]) for i in use]))
-        centres = np.array([np.linalg.inv(views.w2c[i])[:3, 3] for i in use])
-        rays = face.mean(0) - centres
-        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-        angle = float(np.degrees(np.arccos(np.clip(rays @ rays.T, -1, 1)).max()))
-        options.append((med > FACE_PX or angle < MIN_ANGLE_DEG, med, face, len(use), angle, ref if not slide else 0.0))
+        err = {i: float(_reprojection(face, use[i], proj[i]).max()) for i in use}
+        keep = {i: q for i, q in use.items() if err[i] <= max(3.0, 3.0 * np.median(list(err.values())))}
+        if len(keep) == len(use) or len(keep) < MIN_QUADS:
+            break
+        use = keep
+    face = triangulate_front(use, proj, shifted, slide)
+    med = float(np.median([_reprojection(face, use[i], proj[i]) for i in use]))
+    # how far the front's normal turns when every corner moves by a pixel: views too close together leave its depth,
+    # and so its tilt, free (a front triangulated from views 1 deg apart sits anywhere along the rays)
+    rng = np.random.default_rng(0)
+    normal = _normal(face)
+    turns = [np.degrees(np.arccos(min(1.0, abs(float(normal @ _normal(triangulate_front(
+        {i: q + rng.normal(0, 1.0, q.shape) for i, q in use.items()}, proj, shifted, slide))))))) for _ in range(4)]
+    return face, med, float(max(turns)), len(use)
+
+
+def _normal(face: np.ndarray) -> np.ndarray:
+    n = np.cross(face[2] - face[0], face[3] - face[1])
+    return n / max(float(np.linalg.norm(n)), 1e-12)
+
+
+def find_front(views: Views, states: np.ndarray, known: np.ndarray) -> tuple[np.ndarray | None, dict[str, Any]]:
+    """The front's corners (4, 3) in the world, and at which state (`front_state` in the figures; None: a state no
+    label gives); None and the reason when the views do not fix it.
+
+    From the frames at known states first (at state 0 for a slide: its other known states join); else from a run of
+    consecutive frames where the front rests, at whatever state (a capture labelled on a few isolated frames)."""
+    quads = _same_order({i: q for i in range(len(views.masks)) if (q := front_corners(views.masks[i])) is not None})
+    proj = {i: views.K @ views.w2c[i][:3] for i in quads}
+    known_quads = {i: q for i, q in quads.items() if known[i]}
+    st = {i: float(states[i]) for i in known_quads}
+    options = []
+    if st:
+        ref = min(set(st.values()), key=lambda v: (-sum(s == v for s in st.values()), v))  # the most shown state
+        for slide in (True, False):  # a slide's frames at other states help; a hinge's only its reference state's
+            use = dict(known_quads) if slide else {i: q for i, q in known_quads.items() if st[i] == ref}
+            if len(use) >= MIN_QUADS and (not slide or len(set(st[i] for i in use)) >= 2):
+                shifted = {i: st[i] - (0.0 if slide else ref) for i in use}
+                options.append((*_fit_front(views, use, proj, shifted, slide), 0.0 if slide else ref))
+    keys = sorted(quads)
+    for a in range(max(0, len(keys) - REST_RUN + 1)):  # runs where the front rests, at an unknown state
+        run = keys[a:a + REST_RUN]
+        if run[-1] - run[0] < 1.5 * REST_RUN:
+            options.append((*_fit_front(views, {i: quads[i] for i in run}, proj, dict.fromkeys(run, 0.0), False),
+                            None))
     if not options:
-        return None, {"silhouette_reason": "too few frames at one known state showed the part's front",
-                      "front_frames": len(quads)}
-    bad, med, face, n, angle, at = min(options, key=lambda o: (o[0], o[1]))  # pinned down first, then closest
-    fig = {"front_frames": n, "front_px": round(med, 2), "front_angle_deg": round(angle, 1), "front_state": at}
-    if bad:
+        return None, {"silhouette_reason": f"the part's front showed four corners in {len(quads)} frames, "
+                                           f"{len(known_quads)} at a known state (need {MIN_QUADS} at one state, or "
+                                           f"{REST_RUN} running)", "front_frames": len(known_quads)}
+
+    def rank(o: tuple) -> tuple:
+        face, med, tilt, n, at = o
+        return med > FACE_PX or tilt > MAX_TILT_DEG, at is None, med  # pinned down, known state, then closest
+
+    face, med, tilt, n, at = min(options, key=rank)
+    fig = {"front_frames": n, "front_px": round(med, 2), "front_tilt_deg": round(tilt, 2), "front_state": at}
+    if rank((face, med, tilt, n, at))[0]:
         fig["silhouette_reason"] = (f"the part's front is not pinned down by the views (corners reproject within "
-                                    f"{med:.1f} px, need {FACE_PX}; seen over {angle:.1f} deg, need {MIN_ANGLE_DEG})")
+                                    f"{med:.1f} px, need {FACE_PX}; a pixel of corner noise tilts it {tilt:.1f} deg, "
+                                    f"need {MAX_TILT_DEG}: the views are too close together)")
         return None, fig
     return face, fig
 
@@ -228,7 +257,8 @@ class Silhouettes:
         p = (self.proj[i] @ np.c_[pts, np.ones(len(pts))].T).T
         if (p[:, 2] <= 1e-6).any():
             return 0.0
-        uv = p[:, :2] / p[:, 2:3] - (x0, y0)
+        big = 4 * max(m.shape)  # a far-off or huge projection would take a rasteriser long to clip: no overlap anyway
+        uv = np.clip(p[:, :2] / p[:, 2:3] - (x0, y0), -big, big)
         pred = np.zeros(m.shape, np.uint8)
         cv2.fillConvexPoly(pred, cv2.convexHull(np.round(uv * 16).astype(np.int32)), 1, shift=4)
         pred = pred > 0

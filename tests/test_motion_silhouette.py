@@ -112,7 +112,9 @@ def test_plain_door_is_measured_as_a_hinge_about_its_edge():
 def test_views_that_barely_move_are_refused_with_the_cause():
     ds, truth, st, kn, labelled = capture("slide", sweep_deg=1.0)
     motion, fig = measure_silhouettes(ds, 0, st, kn, labelled, min_pixels=50)
-    assert motion is None and "not pinned down" in fig["silhouette_reason"], fig
+    assert motion is None, fig
+    # the front from a run of frames 1 deg apart is refused, or the motion from it fits nothing
+    assert "not pinned down" in fig["silhouette_reason"] or "overlap" in fig["silhouette_reason"], fig
 
 
 def test_motions_stage_takes_the_silhouette_route(tmp_path):

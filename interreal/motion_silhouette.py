@@ -32,7 +32,8 @@ from .dataset import Articulation
 from .motion_fit import Fit, articulate
 
 FACE_PX = 2.0          # the front's corners must reproject within this (median, full-size pixels) ...
-MAX_TILT_DEG = 3.0     # ... and its normal turn less than this when its corners move by a pixel
+MAX_TILT_DEG = 3.0     # ... and its normal turn less than this when its corners move by their scatter (median
+MIN_NOISE_PX = 0.25    # reprojection, at least this: a mask's pixel grid)
 MIN_QUADS = 6          # frames whose mask gave four corners, at least
 REST_RUN = 8           # ... or this many in a row (within 1.5x as many frames) where the front rests
 QUAD_IOU = 0.95        # ... a quadrilateral that covers the mask this well (else the mask is some other shape)
@@ -187,15 +188,19 @@ def find_front(views: Views, states: np.ndarray, known: np.ndarray) -> tuple[np.
                                            f"{REST_RUN} running)", "front_frames": len(known_quads)}
 
     def rank(o: tuple) -> tuple:
-        face, med, tilt, n, at = o
-        return med > FACE_PX or tilt > MAX_TILT_DEG, at is None, med  # pinned down, known state, then closest
+        face, med, per_px, n, at = o
+        tilt = per_px * max(med, MIN_NOISE_PX)  # how far its corners' own scatter may tilt it
+        # pinned down, then known state, then closest: corners that agree best are a flat front (an open drawer's box
+        # can pass for a quadrilateral in a view, but it is no flat one, and its corners scatter more)
+        return med > FACE_PX or tilt > MAX_TILT_DEG, at is None, med
 
-    face, med, tilt, n, at = min(options, key=rank)
+    face, med, per_px, n, at = min(options, key=rank)
+    tilt = per_px * max(med, MIN_NOISE_PX)
     fig = {"front_frames": n, "front_px": round(med, 2), "front_tilt_deg": round(tilt, 2), "front_state": at}
-    if rank((face, med, tilt, n, at))[0]:
+    if rank((face, med, per_px, n, at))[0]:
         fig["silhouette_reason"] = (f"the part's front is not pinned down by the views (corners reproject within "
-                                    f"{med:.1f} px, need {FACE_PX}; a pixel of corner noise tilts it {tilt:.1f} deg, "
-                                    f"need {MAX_TILT_DEG}: the views are too close together)")
+                                    f"{med:.2f} px, need {FACE_PX}; that scatter may tilt it {tilt:.1f} deg, need "
+                                    f"{MAX_TILT_DEG}: the views are too close together)")
         return None, fig
     return face, fig
 

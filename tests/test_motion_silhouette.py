@@ -126,3 +126,16 @@ def test_motions_stage_takes_the_silhouette_route(tmp_path):
     motion, fig = motions.measure_part(None, ds, [], tmp_path, st, kn, cfg, labelled=labelled, obj=0)
     assert motion is not None and motion.kind == "slide" and fig["accepted"]
     assert list(fig["routes"]) == ["silhouette"] and fig["routes"]["silhouette"]["accepted"]
+
+
+def test_front_from_a_run_where_it_rests_when_labels_are_few():
+    """Two labels only (closed at frame 5, open at frame 30): no known state shows the front in six frames, so it is
+    triangulated from a run of frames where it rests; the slide is still measured."""
+    ds, truth, _, _, _ = capture("slide")
+    n = len(truth)
+    labelled = np.zeros(n, bool)
+    labelled[[5, 30]] = True
+    st, kn = known_states(np.arange(n, dtype=float), np.where(labelled, truth, 0)[:, None], labelled[:, None])
+    motion, fig = measure_silhouettes(ds, 0, st[:, 0], kn[:, 0], labelled, min_pixels=50)
+    assert motion is not None and motion.kind == "slide" and fig["front_state"] is None, fig
+    assert off_deg(motion.axis, [0.0, 0.0, 1.0]) < 1.5 and abs(motion.range - 0.15) / 0.15 < 0.05, motion

@@ -194,6 +194,14 @@ def disagreement_text(check: list[list], fids: list[str], most: int = 5) -> str:
                else "no single label is off by more than " + f"{FLAG_TOL}"))
 
 
+def routes_text(fig: dict[str, Any]) -> str:
+    """'; the other routes: pnp: <why not>; ...' for the routes tried besides the one whose motion is reported."""
+    used = fig.get("route")
+    said = [f"{r}: {v.get('reason') or ('refused' if v.get('kind') else 'no motion')}"
+            for r, v in fig.get("routes", {}).items() if r != used]
+    return f"; the other routes: {'; '.join(said)}" if said else ""
+
+
 def _better(fig: dict[str, Any], best: dict[str, Any]) -> bool:
     """An accepted fit beats a refused one; then the one whose labels agree best."""
     def key(f: dict[str, Any]) -> tuple[bool, float]:
@@ -239,6 +247,7 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
             motion, fig = measure_silhouettes(ds, obj, states, known, labelled, cfg.min_pixels)
         else:
             motion, fig = _measure_part_sfm(pc, ds, names, part, states, known, labelled, cfg, step, start)
+        fig.setdefault("route", route)
         tried[route] = {"registered": fig.get("registered", 0), "kind": None if motion is None else motion.kind,
                         "accepted": bool(fig.get("accepted")),
                         "reason": fig.get("reason") or fig.get("silhouette_reason"),
@@ -413,8 +422,8 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                     rep.warn(f"'{name}': the measured {motion.kind} is not used: {fig['reason']}; best of "
                              f"{fig['attempts']} reconstructions, which registered {fig['registered']} of the "
                              f"{len(names)} frames it shows in; {disagreement_text(fig.get('label_check', []), fids)}"
-                             f"; check those labels and the part's masks", cause="motion-inconsistent", object=name,
-                             flagged=_flag_rows(fig, fids))
+                             f"{routes_text(fig)}; check those labels and the part's masks",
+                             cause="motion-inconsistent", object=name, flagged=_flag_rows(fig, fids))
                     continue
                 if fig["flagged_labels"]:
                     rep.warn(f"'{name}': {len(fig['flagged_labels'])} of {len(fig['label_check'])} labels disagree "

@@ -139,3 +139,14 @@ def test_front_from_a_run_where_it_rests_when_labels_are_few():
     motion, fig = measure_silhouettes(ds, 0, st[:, 0], kn[:, 0], labelled, min_pixels=50)
     assert motion is not None and motion.kind == "slide" and fig["front_state"] is None, fig
     assert off_deg(motion.axis, [0.0, 0.0, 1.0]) < 1.5 and abs(motion.range - 0.15) / 0.15 < 0.05, motion
+
+
+def test_a_refused_motion_names_what_the_other_routes_said():
+    from interreal.motions import routes_text
+
+    fig = {"route": "sfm", "routes": {"sfm": {"kind": "hinge", "reason": "its reconstruction turned"},
+                                      "pnp": {"kind": None, "reason": None},
+                                      "silhouette": {"kind": None, "reason": "the part's front is not pinned down"}}}
+    text = routes_text(fig)
+    assert text == "; the other routes: pnp: no motion; silhouette: the part's front is not pinned down", text
+    assert routes_text({"route": "sfm", "routes": {"sfm": {}}}) == ""

@@ -48,11 +48,13 @@ STEPS = 45             # grid points of the per-frame search (then refined by a 
 
 @dataclass
 class Views:
-    """Per frame: the part's mask (h, w) bool, world -> camera (4, 4) in OpenCV axes; one K (3, 3)."""
+    """Per frame: the part's mask (h, w) bool, world -> camera (4, 4) in OpenCV axes; one K (3, 3) and OpenCV
+    distortion (k1, k2, p1, p2[, k3]; None: a pinhole)."""
 
     masks: list[np.ndarray]
     w2c: np.ndarray
     K: np.ndarray
+    dist: np.ndarray | None = None
 
 
 def front_corners(mask: np.ndarray) -> np.ndarray | None:
@@ -165,6 +167,9 @@ def find_front(views: Views, states: np.ndarray, known: np.ndarray) -> tuple[np.
     From the frames at known states first (at state 0 for a slide: its other known states join); else from a run of
     consecutive frames where the front rests, at whatever state (a capture labelled on a few isolated frames)."""
     quads = _same_order({i: q for i in range(len(views.masks)) if (q := front_corners(views.masks[i])) is not None})
+    if views.dist is not None and np.any(views.dist):  # triangulated as a pinhole K would have seen them
+        quads = {i: cv2.undistortPoints(q.reshape(-1, 1, 2), views.K, views.dist, P=views.K).reshape(-1, 2)
+                 for i, q in quads.items()}
     proj = {i: views.K @ views.w2c[i][:3] for i in quads}
     known_quads = {i: q for i, q in quads.items() if known[i]}
     st = {i: float(states[i]) for i in known_quads}
@@ -242,9 +247,11 @@ class Silhouettes:
     def __init__(self, views: Views, frames: list[int]):
         h, w = views.masks[0].shape
         self.scale = min(1.0, SIDE / max(h, w))
-        k = views.K.copy()
-        k[:2] *= self.scale
-        self.proj = {i: k @ views.w2c[i][:3] for i in frames}
+        self.k = views.K.copy()
+        self.k[:2] *= self.scale
+        self.dist = np.zeros(5) if views.dist is None else np.asarray(views.dist, float)
+        self.pose = {i: (cv2.Rodrigues(views.w2c[i][:3, :3])[0], views.w2c[i][:3, 3]) for i in frames}
+        self.w2c = {i: views.w2c[i] for i in frames}
         self.crop: dict[int, tuple[int, int, np.ndarray]] = {}
         for i in frames:
             m = views.masks[i]
@@ -260,11 +267,11 @@ class Silhouettes:
 
     def iou(self, pts: np.ndarray, i: int) -> float:
         x0, y0, m = self.crop[i]
-        p = (self.proj[i] @ np.c_[pts, np.ones(len(pts))].T).T
-        if (p[:, 2] <= 1e-6).any():
+        if ((pts @ self.w2c[i][2, :3] + self.w2c[i][2, 3]) <= 1e-6).any():  # behind the camera
             return 0.0
+        uv, _ = cv2.projectPoints(pts, *self.pose[i], self.k, self.dist)  # the lens's bend at the vertices
         big = 4 * max(m.shape)  # a far-off or huge projection would take a rasteriser long to clip: no overlap anyway
-        uv = np.clip(p[:, :2] / p[:, 2:3] - (x0, y0), -big, big)
+        uv = np.clip(uv.reshape(-1, 2) - (x0, y0), -big, big)
         pred = np.zeros(m.shape, np.uint8)
         cv2.fillConvexPoly(pred, cv2.convexHull(np.round(uv * 16).astype(np.int32)), 1, shift=4)
         pred = pred > 0
@@ -326,7 +333,7 @@ def measure_silhouettes(ds, obj: int, states: np.ndarray, known: np.ndarray, lab
     (N,) over the dataset's frames. (None, figures with `silhouette_reason`) when the route cannot measure it."""
     masks = [ds.load_mask(f)[..., obj] for f in ds.frames]
     w2c = np.stack([np.linalg.inv(opengl_to_opencv(f.c2w)) for f in ds.frames])
-    views = Views(masks, w2c, ds.intrinsics.K())
+    views = Views(masks, w2c, ds.intrinsics.K(), ds.intrinsics.dist())
     frames = [i for i, m in enumerate(masks) if int(m.sum()) >= min_pixels]
     res, fig = silhouette_motion(views, states, known, frames)
     fig["route"] = "silhouette"

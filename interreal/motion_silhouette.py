@@ -294,10 +294,9 @@ def best_displacement(sil: Silhouettes, cand: Candidate, face: np.ndarray, i: in
 
 
 def silhouette_motion(views: Views, states: np.ndarray, known: np.ndarray, frames: list[int]
-                      ) -> tuple[dict[str, Any] | None, dict[str, Any]]:
-    """The best candidate's per-frame displacements over `frames` (positions into views), or None and why.
-
-    Returns {"kind", "axis", "point", "d" (F,), "ok" (F,), "step"} and figures (per candidate mean IoU)."""
+                      ) -> tuple[Fit | None, dict[str, Any]]:
+    """The best candidate as a `Fit` over `frames` (positions into views: its per-frame displacement, the frames
+    it measured, the search step as its position noise), or None and why; figures (per candidate mean IoU)."""
     face, fig = find_front(views, states, known)
     if face is None:
         return None, fig
@@ -320,11 +319,10 @@ def silhouette_motion(views: Views, states: np.ndarray, known: np.ndarray, frame
     if score < MIN_IOU:
         fig["silhouette_reason"] = f"no motion's silhouettes overlap the masks well (best {score:.2f}, need {MIN_IOU})"
         return None, fig
-    pos = {i: k for k, i in enumerate(shown)}
-    full = np.array([d[pos[i]] if i in pos else np.nan for i in frames])
-    grid = grids[cand.kind]
-    return {"kind": cand.kind, "axis": cand.axis, "point": cand.point, "d": np.nan_to_num(full),
-            "ok": np.isfinite(full), "step": float(grid[1] - grid[0])}, fig
+    measured = dict(zip(shown, d))
+    step = float(grids[cand.kind][1] - grids[cand.kind][0])
+    return Fit(cand.kind, cand.axis, cand.point, np.array([measured.get(i, 0.0) for i in frames]),
+               np.array([i in measured for i in frames]), np.full(len(frames), step), 1.0, {}), fig
 
 
 def measure_silhouettes(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: np.ndarray,
@@ -335,12 +333,10 @@ def measure_silhouettes(ds, obj: int, states: np.ndarray, known: np.ndarray, lab
     w2c = np.stack([np.linalg.inv(opengl_to_opencv(f.c2w)) for f in ds.frames])
     views = Views(masks, w2c, ds.intrinsics.K(), ds.intrinsics.dist())
     frames = [i for i, m in enumerate(masks) if int(m.sum()) >= min_pixels]
-    res, fig = silhouette_motion(views, states, known, frames)
+    fit, fig = silhouette_motion(views, states, known, frames)
     fig["route"] = "silhouette"
-    if res is None:
+    if fit is None:
         return None, dict(fig, registered=0)
-    n = len(frames)
-    fit = Fit(res["kind"], res["axis"], res["point"], res["d"], res["ok"], np.full(n, res["step"]), 1.0, {})
-    fig.update(registered=int(res["ok"].sum()), kind_from="silhouettes")
+    fig.update(registered=int(fit.ok.sum()), kind_from="silhouettes")
     at = np.array(frames)
     return articulate(fit, at, states[at], known[at], labelled[at], fig)

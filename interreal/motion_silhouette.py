@@ -13,8 +13,8 @@ from its surroundings. Its front is a flat quadrilateral, so:
 3. every frame's displacement is the one whose predicted silhouette overlaps the mask best (IoU), and the
    candidate with the best mean overlap is the motion: the geometry decides hinge or slide, the labels only
    orient it (`motion_fit.articulate`).
-`recipes/bench_motions.py` measures it alone and in the stage: on simulated drawers 0.3-1.8 deg and states within
-0.025 where it answers, and it is the only route for seed 6's plain drawer; a door's edge and inside spoil its
+`recipes/bench_motions.py` measures it alone and in the stage: on simulated drawers 0.4-1.8 deg and states within
+0.023 where it answers, and it is the only route for seed 6's plain drawer; a door's edge and inside spoil its
 silhouettes (its states 0.14-0.37 off), so the gates and the labels refuse most doors, and the sfm route stays first.
 """
 

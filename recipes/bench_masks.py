@@ -45,9 +45,9 @@ BAD_J = 0.7                      # a sequence under this mean J is one the warni
 EFFORT = (1, 2, 5, 10, 20)       # keyframes per 100 frames
 VARIANTS = {                     # extra command-line settings (speed / accuracy trade-offs)
     "ours": [],
-    "ours-fast": ["--preset", "ultrafast", "--work-size", "320"],
+    "ours-fast": ["--preset", "ultrafast", "--work-size", "320", "--cut", "0"],
     "ours-full": ["--preset", "medium", "--work-size", "0"],
-    "baseline": ["--flow", "farneback", "--appearance", "0", "--rigid", "0", "--no-fusion", "--no-refine",
+    "baseline": ["--flow", "farneback", "--appearance", "0", "--rigid", "0", "--cut", "0", "--no-fusion", "--no-refine",
                  "--work-size", "0"],
 }
 

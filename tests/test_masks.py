@@ -381,8 +381,9 @@ def test_fusion_colour_vote_settles_disagreeing_chains():
 # speed paths must not change the result
 # ---------------------------------------------------------------------------------------------------------------
 def test_prefetch_thread_gives_identical_masks(tmp_path):
-    """Flow and decoding on the worker thread (prefetch), and each gap's forward chain on its own thread while the
-    previous gap is fused, produce exactly the inline result (one-sided chains at both ends, two gaps between)."""
+    """Flow and decoding on the worker thread (prefetch), each gap's forward chain on its own thread while the
+    previous gap is fused, and the one-sided chains' full-size labels made a frame behind them on a thread of their
+    own, produce exactly the inline result (one-sided chains at both ends, two gaps between)."""
     from interreal.masks.stage import make_config
 
     images, truths = toy_sequence(n=14)
@@ -503,7 +504,7 @@ def test_masks_flags_come_from_the_config_fields():
     p = argparse.ArgumentParser()
     add_arguments(p)
     flags = {s for a in p._actions for s in a.option_strings} - {"-h", "--help"}
-    assert flags == {"--keyframes", "--quiet", "--work-size", "--flow", "--preset", "--appearance", "--rigid",
+    assert flags == {"--keyframes", "--quiet", "--work-size", "--flow", "--preset", "--appearance", "--rigid", "--cut",
                      "--no-fusion", "--no-refine", "--suggest", "--preview"}
     opts = masks_options(p.parse_args(["ds", "--keyframes", "kf"]))
     defaults = dataclasses.asdict(MasksConfig())
@@ -518,3 +519,7 @@ def test_masks_flags_come_from_the_config_fields():
         p.parse_args(["ds", "--keyframes", "kf", "--preview", "gif"])
     with pytest.raises(InputError, match="unknown masks options"):
         make_config(work_size=0)
+    assert make_config(cut=0.0).cut == 0.0 and make_config().cut == 0.5
+    for name, bad in (("cut", 1.5), ("cut", float("nan")), ("rigid", -0.1), ("appearance", -1.0)):
+        with pytest.raises(InputError, match=f"--{name}"):
+            make_config(**{name: bad})

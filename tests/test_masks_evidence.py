@@ -138,3 +138,56 @@ def test_one_sided_chain_uses_the_keyframe_measured_colour_weight(monkeypatch):
     labels([0], False)
     labels([0, 3], True)                                             # no one-sided chain
     assert used == []
+
+
+def test_cut_moves_the_boundary_where_the_keyframe_colours_agree(monkeypatch):
+    """The mask misses the disk's right cap and holds a strip of green below it: the cut gives the cap back and
+    takes the strip away, the same on a second run; and whatever GrabCut says, a pixel changes label only where the
+    keyframe's colours favour the new one (a cut that takes the whole window adds only red, one that takes nothing
+    removes only green)."""
+    from interreal.masks import track
+
+    w, h = 160, 120
+    frame, lab = _keyframe((220, 40, 40))          # a red disk (radius 30 at (80, 60)) on noisy green
+    model = ColourModel.fit(frame, *anchor_soft(lab, 1, (w, h)), AppearanceConfig())
+    disk = lab == 1
+    mask = disk.copy()
+    mask[:, 100:] = False                           # the right cap (x 100-110) not yet in the mask
+    leak = np.zeros_like(disk)
+    leak[90:96, 60:100] = True                      # green below the disk, in the mask
+    soft = np.zeros((h, w, 2), np.float32)
+    soft[..., 0] = np.where(mask | leak, 0.95, 0.05)
+    soft[..., 1] = 1.0 - soft[..., 0]
+    prop = _propagator(w, h)
+    bins = quantize(frame, model.cfg.bins)
+    out = prop._cut(soft, frame, model, bins)
+    assert np.allclose(out.sum(-1), 1.0, atol=1e-5)
+    assert (out[disk & ~mask, 0] > 0.5).mean() > 0.75       # measured 0.89: 0.05 -> 0.525
+    assert (out[leak, 0] < 0.5).mean() > 0.7                # 0.80: 0.95 -> 0.475 (a core next to the disk stays)
+    assert (out[mask, 0] > 0.5).all()
+    assert np.allclose(out, prop._cut(soft, frame, model, bins))
+    red = model.hist[0, bins] > 2 * model.hist[1, bins]
+    green = model.hist[0, bins] < 0.5 * model.hist[1, bins]
+    for everything in (True, False):
+        monkeypatch.setattr(track, "_cut_window", lambda rgb, obj, *a, **k: np.full(obj.shape, everything))
+        changed = (prop._cut(soft, frame, model, bins)[..., 0] > 0.5) != (soft[..., 0] > 0.5)
+        assert changed.any() and (red if everything else green)[changed].all()
+
+
+def test_only_chains_without_a_second_keyframe_cut(monkeypatch):
+    """`_cut` runs on every frame of a one-sided chain when `cut` > 0, never between two keyframes, never at 0."""
+    img, lab = _keyframe((220, 40, 40))
+    h, w = lab.shape
+    calls: list[int] = []
+    orig = Propagator._cut
+    monkeypatch.setattr(Propagator, "_cut", lambda self, *a: calls.append(1) or orig(self, *a))
+
+    def count(keys: list[int], cut: float) -> int:
+        calls.clear()
+        prop = Propagator(lambda i: img, 5, (w, h), 1, TrackConfig(prefetch=0, cut=cut))
+        out = [r.labels for r in prop.run({k: lab for k in keys})]
+        assert all(((m == 1) == (lab == 1)).mean() > 0.98 for m in out)   # a still frame keeps its disk
+        return len(calls)
+
+    assert count([0], 0.5) == 4 and count([2], 0.5) == 4
+    assert count([0, 4], 0.5) == 0 and count([0], 0.0) == 0

@@ -1,7 +1,8 @@
 """`interreal masks`: propagate a few keyframe masks to every frame with OpenCV flow, with confidence.
 
 Modules: keyframes (PNG / LabelMe input, GrabCut for boxes), flow (DIS / RLOF / Farneback, forward-backward
-trust), appearance (per-label colour models), track (chains, fusion, refinement), redetect (finding an object
+trust), appearance (per-label colour models), track (chains, fusion, refinement; a GrabCut of each frame where no
+second keyframe corrects the chain), redetect (finding an object
 again after its mask collapsed, from its keyframe's colours and ORB features), confidence (where to add
 keyframes), health (lost / jumped / drifting per frame, a predicted J, the warnings), preview, stage.
 """
@@ -30,6 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
   interreal masks out/ds --keyframes annotations/keyframes
   interreal masks out/ds --keyframes kf/ --suggest 3 --preview sheet
   interreal masks out/ds --keyframes kf/ --work-size 0 --preset medium   # slower, sharper
+  interreal masks out/ds --keyframes kf/ --cut 0                         # faster where one keyframe must carry
 keyframes: DIR/00042.png (0 = background, k = object k-1, 254 = ignore: a person / hand, 255 = not annotated) or
 DIR/00042.json (LabelMe polygons / rectangles; label ignore, person, hand or arm = the ignore class);
 DIR/mapping.yaml names the objects when the dataset has no mapping.yaml. The ignore class is propagated like an

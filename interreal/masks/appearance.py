@@ -13,6 +13,8 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
+from .soft import disk
+
 
 @dataclass(frozen=True)
 class AppearanceConfig:
@@ -58,7 +60,7 @@ class ColourModel:
         # background: the band around the objects counts fully, the rest of the image a little
         objects = (ok & (labels < c - 1)).astype(np.uint8)
         r = max(3, int(cfg.band * np.hypot(h, w)))
-        near = cv2.dilate(objects, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
+        near = cv2.dilate(objects, disk(r)) > 0
         bg = ok & (labels == c - 1)
         hist[c - 1] = np.bincount(bins[(bg & near).ravel()], minlength=n) + 0.1 * np.bincount(bins[bg.ravel()], minlength=n)
         counts = hist.sum(1)
@@ -106,7 +108,7 @@ def heldout_information(image: np.ndarray, soft: np.ndarray, known: np.ndarray, 
     if not objects.any():
         return 0.0
     r = max(3, int(cfg.band * np.hypot(h, w)))
-    near = cv2.dilate(objects, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
+    near = cv2.dilate(objects, disk(r)) > 0
     block = max(2, round(max(h, w) / 30))
     ys, xs = np.mgrid[:h, :w]
     odd = ((ys // block + xs // block) % 2).astype(bool)

@@ -15,6 +15,11 @@ import numpy as np
 from ..conventions import UNANNOTATED
 
 
+def disk(r: int) -> np.ndarray:
+    """An elliptical structuring element of radius r px (every band around a mask in this package is one)."""
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+
 def anchor_soft(index_map: np.ndarray, n_objects: int, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Keyframe index map -> (soft map (h, w, K+1) at work size, known (h, w) in [0, 1]); 255 = unknown."""
     known = (index_map != UNANNOTATED).astype(np.float32)

@@ -26,7 +26,7 @@ from . import health as H
 from .keyframes import load_keyframes
 from ..video import VideoWriter
 from .preview import contact_sheet, second_line, thumb
-from .soft import argmax_labels
+from .soft import argmax_labels, disk
 from .track import Propagator, TrackConfig
 from ..transients import (IGNORE, clear_transients, read_transient, split_labels, track_labels, transient_file,
                           write_transient)
@@ -391,7 +391,7 @@ def _write_sfm_mask(ds: Path, image_name: str, labels: np.ndarray, dilate: int) 
     """COLMAP mask `sfm_masks/<image name>.png`: 255 = use the pixel for SfM, 0 = object (moves), ignore."""
     obj = (labels > 0).astype(np.uint8)
     if dilate > 0 and obj.any():
-        obj = cv2.dilate(obj, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilate + 1, 2 * dilate + 1)))
+        obj = cv2.dilate(obj, disk(dilate))
     atomic.write_image(ds / SFM_MASKS_DIR / f"{image_name}.png", np.where(obj > 0, 0, 255).astype(np.uint8))
 
 

@@ -437,10 +437,12 @@ class Propagator:
             q = bins[win]
             ratio = model.hist[k, q] / model.hist[-1, q]
             fg = np.where(obj[win], fg | (ratio >= 1 / CUT_COLOUR), fg & (ratio > CUT_COLOUR)).astype(np.float32)
+            # the cut decides between this object and the background only: their joint share is redistributed,
+            # other objects' probability is left as it is
             sub = out[win]
-            sub *= 1 - c
-            sub[..., k] += c * fg
-            sub[..., -1] += c * (1 - fg)
+            pair = sub[..., k] + sub[..., -1]
+            sub[..., k] = (1 - c) * sub[..., k] + c * fg * pair
+            sub[..., -1] = pair - sub[..., k]
         out /= np.maximum(chsum(out), 1e-6)
         return out.astype(np.float32, copy=False)
 

@@ -89,7 +89,7 @@ class TrackConfig:
     grow: float = 0.8
     # on the same chains, the share of each object's probability set by a GrabCut of the frame itself (`_cut`;
     # 0 = off). DAVIS first-frame mean J 0.705 -> 0.721 (motocross-jump +0.11, horsejump-high and dog +0.03,
-    # car-shadow -0.035), the whole command 23 -> 17.6 frames/s there; 0.7 gave 0.711 on the ten, 0.3 less than 0.5
+    # car-shadow -0.035), the whole command 23 -> 19 frames/s there; 0.7 gave 0.711 on the ten, 0.3 less than 0.5
     # on the hardest two
     cut: float = 0.5
     fusion: bool = True              # fuse forward and backward chains (False = forward only where possible)

@@ -78,6 +78,19 @@ class ColourModel:
         return self.table[bins]
 
 
+def grabcut(rgb: np.ndarray, trimap: np.ndarray, iterations: int, seed: int = 0) -> np.ndarray | None:
+    """(h, w) bool foreground of GrabCut on an RGB image from a trimap of cv2.GC_* values (changed in place), or
+    None when it cannot model the colours (too few pixels on one side). `seed` fixes its k-means start (OpenCV's
+    RNG, set here), so the same input always cuts alike."""
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    cv2.setRNGSeed(seed)
+    try:
+        cv2.grabCut(np.ascontiguousarray(rgb[..., ::-1]), trimap, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
+    except cv2.error:
+        return None
+    return (trimap == cv2.GC_FGD) | (trimap == cv2.GC_PR_FGD)
+
+
 def joint_log_table(models: list[ColourModel]) -> np.ndarray:
     """(bins^3, K+1) log-likelihood of each colour under each label, pooling the keyframes at both ends of a gap.
 

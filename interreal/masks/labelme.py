@@ -19,6 +19,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..transients import IGNORE, is_ignore_label
+from .appearance import grabcut
 
 
 def same_aspect(a: tuple[int, int], b: tuple[int, int], tol: float = 0.01) -> bool:
@@ -183,14 +184,10 @@ def grabcut_box(image: np.ndarray, box: tuple[int, int, int, int], taken: np.nda
     mask[y0:y1, x0:x1] = cv2.GC_PR_FGD
     if taken is not None:
         mask[taken] = cv2.GC_BGD
-    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
-    cv2.setRNGSeed(0)
-    bgr = np.ascontiguousarray(image[..., ::-1])
-    try:
-        cv2.grabCut(bgr, mask, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
-    except cv2.error:
-        return mask == cv2.GC_PR_FGD  # too little background to model colour: keep the box
-    out = (mask == cv2.GC_FGD) | (mask == cv2.GC_PR_FGD)
+    box_only = mask == cv2.GC_PR_FGD
+    out = grabcut(image, mask, iterations)
+    if out is None:
+        return box_only  # too little background to model colour: keep the box
     if not out.any():
-        out = mask == cv2.GC_PR_FGD
+        out = box_only
     return out

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from ..conventions import UNANNOTATED
-from .appearance import AppearanceConfig, ColourModel, heldout_information, joint_log_table
+from .appearance import AppearanceConfig, ColourModel, grabcut, heldout_information, joint_log_table
 from .flow import FlowConfig, FlowEngine, Step, make_step, sampling_grid
 from .redetect import Event, RedetectConfig, Redetector
 from .soft import anchor_soft, argmax_channels, argmax_labels, channels_to_labels, chsum, disk, filter_objects
@@ -702,7 +702,7 @@ def _cut_window(rgb: np.ndarray, obj: np.ndarray, others: np.ndarray | None, ban
     h, w = obj.shape
     f = min(1.0, CUT_SIDE / max(h, w))
     size = (max(1, round(w * f)), max(1, round(h * f)))
-    small = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)[..., ::-1].copy()
+    small = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
     m = cv2.resize(obj.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
     core, out = (max(1, round(r * f)) for r in (band * CUT_CORE / CUT_BAND, band))
     tri = np.full(m.shape, cv2.GC_BGD, np.uint8)
@@ -711,13 +711,10 @@ def _cut_window(rgb: np.ndarray, obj: np.ndarray, others: np.ndarray | None, ban
     tri[cv2.erode(m, disk(core)) > 0] = cv2.GC_FGD
     if others is not None:
         tri[cv2.resize(others.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0] = cv2.GC_BGD
-    if not ((tri == cv2.GC_FGD).any() and (tri == cv2.GC_BGD).any()):
+    fg = grabcut(small, tri, 1, seed) if (tri == cv2.GC_FGD).any() and (tri == cv2.GC_BGD).any() else None
+    if fg is None:  # nothing sure on one side, or too few pixels to model its colours: the mask as it is
         return obj.copy()
-    cv2.setRNGSeed(seed)
-    models = np.zeros((2, 65), np.float64)
-    cv2.grabCut(small, tri, None, models[:1], models[1:], 1, cv2.GC_INIT_WITH_MASK)
-    fg = ((tri == cv2.GC_FGD) | (tri == cv2.GC_PR_FGD)).astype(np.float32)
-    return cv2.resize(fg, (w, h), interpolation=cv2.INTER_LINEAR) > 0.5
+    return cv2.resize(fg.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR) > 0.5
 
 
 def _resolved(res: FrameResult) -> FrameResult:

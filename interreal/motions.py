@@ -418,6 +418,9 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                 st["kind"] = motion.kind
                 st["frame_states"] = frame_state_rows(fig, fids, labels[:, o], given[:, o])
                 motion.extra = {k: v for k, v in fig.items() if k != "frame_states"}
+                # every registered frame's measured state, by frame id: what training fits the states to
+                # (`Articulation.measured_states`), eyeballed labels being coarser than the geometry
+                motion.extra["frame_states"] = {fids[f]: m for f, m in fig.get("frame_states", [])}
                 if not fig["accepted"]:
                     rep.warn(f"'{name}': the measured {motion.kind} is not used: {fig['reason']}; best of "
                              f"{fig['attempts']} reconstructions, which registered {fig['registered']} of the "

@@ -69,6 +69,10 @@ class ModelConfig:
     capacity: float = 1.0  # multiplies the auto resolutions (capacity sweeps)
     max_resolution: int = 256  # cap for the finest auto spatial resolution
     max_k_resolution: int = 16
+    warp: str = "points"  # where the planes' cells go (`field.AxisWarp`): "points" = each axis follows the SfM
+    # points' distribution (a real capture's box is mostly far walls), "off" = evenly over the box; a dataset
+    # without a point cloud is even either way
+    warp_uniform: float = 0.5  # under "points", the share of each axis spread evenly (1 = "off")
     appearance: str = "off"  # per-frame colour transform of the training renders (`livescene.appearance`): phone
     # auto-exposure and white balance; "gain" (per channel), "affine" (3x3 + bias) or "off"; new views render
     # neutral. Off by default: it did not help on the real laptop video (figures: docs/interfaces.md)
@@ -119,6 +123,9 @@ class TrainConfig:
     lr_final_ratio: float = 0.05
     warmup: int = 256
     keyframe_fraction: float = 0.1  # share of each ray batch drawn from frames with state labels
+    measured_states: bool = True  # Lvar also holds each frame's state where `interreal motions` measured it from
+    # the part's displacement (articulation.json `frame_states`), in place of that frame's label: eyeballed labels
+    # are coarser than the geometry (the real laptop video: 0.25 apart on frames the geometry puts 14 deg apart)
     reg_every: int = 1  # plane regularisers every n steps (weight x n): they cost a full pass over every plane
     eval_every: int = 500
     log_every: int = 25

@@ -277,7 +277,7 @@ class Views:
     c2w_gl: np.ndarray  # (N, 4, 4)
     intrinsics: list[Intrinsics]  # per frame, at the working image size
     times: np.ndarray  # (N,)
-    labels: np.ndarray  # (N, M)
+    labels: np.ndarray  # (N, M) Lvar's targets: the labels, or the measured states (`measured_targets`)
     given: np.ndarray  # (N, M) bool, False on held-out frames
     train: list[int]
     held_out: list[int]
@@ -338,12 +338,11 @@ def load_views(path: str | Path, cfg: TrainConfig, check_masks: bool = True) -> 
         w, h = working_size(base, first.shape[:2], cfg.max_side)
         intrs.append(base.scaled(w, h) if (w, h) != (base.w, base.h) else base)
     labels, given = ds.label_matrix()
-    raw_labels = labels
     if cfg.split == "official":  # the paper's split, so figures compare with its (interreal.official)
         train, held = official_positions(ds.layout, ds.extra, [f.file_path for f in ds.frames])
     else:
         train, held = split_indices(len(ds.frames), cfg.holdout_every, cfg.holdout_offset)
-    given = given.copy()
+    targets, given = measured_targets(ds, labels, given) if cfg.measured_states else (labels, given.copy())
     given[held] = False
     if cfg.scene_box:
         if len(cfg.scene_box) != 6:
@@ -352,10 +351,40 @@ def load_views(path: str | Path, cfg: TrainConfig, check_masks: bool = True) -> 
     else:
         lo, hi, src = scene_box(ds)
     views = Views(dataset=ds, c2w_gl=np.stack([f.c2w for f in ds.frames]), intrinsics=intrs, times=frame_times(ds),
-                  labels=raw_labels, given=given, train=train, held_out=held,
+                  labels=targets, given=given, train=train, held_out=held,
                   box_lo=lo.astype(np.float32), box_hi=hi.astype(np.float32), box_source=src)
     check_views(views)
     return views
+
+
+def measured_targets(ds: LiveSceneDataset, labels: np.ndarray, given: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lvar's targets (N, M) and where they are given: the labels, with each frame's measured state
+    (`Articulation.measured_states`) in their place where `interreal motions` measured one. The labels then only
+    fix a motion's ends and direction (the measurement is calibrated on them) and cover the frames it missed."""
+    fids = [f.fid for f in ds.frames]
+    labels, given = labels.copy(), given.copy()
+    for o, name in enumerate(ds.object_names):
+        motion = ds.articulation.get(name)
+        if motion is None:
+            continue
+        measured = motion.measured_states(fids)
+        ok = np.isfinite(measured)
+        labels[ok, o] = np.clip(measured[ok], 0.0, 1.0)
+        given[ok, o] = True
+    return labels, given
+
+
+def measured_counts(views: Views) -> dict[str, int]:
+    """{object: training frames whose Lvar target is a measured state} (only objects with any)."""
+    fids = [f.fid for f in views.dataset.frames]
+    out = {}
+    for name in views.names:
+        motion = views.dataset.articulation.get(name)
+        if motion is not None:
+            n = int(np.isfinite(motion.measured_states(fids))[views.train].sum())
+            if n:
+                out[name] = n
+    return out
 
 
 def load_transient(views: Views, i: int) -> np.ndarray | None:

@@ -35,7 +35,7 @@ import torch
 
 from .articulation import KIND_CODES, rotate
 from .config import SamplerConfig
-from .field import GATED_LOGIT, LiveSceneModel, normalise
+from .field import GATED_LOGIT, LiveSceneModel
 from .sampler import pdf_edges, pixel_logits, ray_box, uniform_edges, volume_weights
 
 TERMINATE_T = 1e-4  # a ray stops once less than this share of its light can still come from further on
@@ -122,7 +122,7 @@ class FixedStates:
         """`place` with the logits only of the samples the probability field decides (`Placed.decided`; the
         others have `default_logits`), so a renderer can leave their softmax out."""
         model = self.model
-        xyz = normalise(pts, box)
+        xyz = model.to_field(pts, box)
         n = pts.shape[0]
         if not self.rigid:
             logits = model.prob.forward_folded(xyz, self.bias_world).masked_fill(~model.slot_mask, -1e4)
@@ -139,7 +139,7 @@ class FixedStates:
             sel = [g.nonzero()[:, 0] for g in gate_a]
             sizes = [len(x) for x in sel]
             if sum(sizes):
-                inputs = torch.cat([normalise(self.rest(j, pts[ia[x]]), box) for j, x in enumerate(sel)])
+                inputs = torch.cat([model.to_field(self.rest(j, pts[ia[x]]), box) for j, x in enumerate(sel)])
                 raw = model.prob.forward_folded(inputs, self.bias_rest).split(sizes)
                 for j, o in enumerate(self.rigid):
                     la[sel[j], o] = raw[j][:, o]
@@ -152,7 +152,7 @@ class FixedStates:
             for j in range(len(self.rigid)):
                 m = moved[group[moved] == j + 1]
                 if len(m):
-                    xyz[m] = normalise(self.rest(j, pts[m]), box)
+                    xyz[m] = model.to_field(self.rest(j, pts[m]), box)
                     view[m] = dirs[m] @ self.rt[j]
         if la is None:
             la = self.default_logits.new_zeros(0, self.default_logits.shape[0])
@@ -246,7 +246,7 @@ def march_rays(model: LiveSceneModel, fixed: FixedStates, origins: torch.Tensor,
                 return prop(xyz, k)
         else:
             def read(pts, ri, prop=prop):
-                return prop(normalise(pts, box), None)
+                return prop(model.to_field(pts, box), None)
         sigma, _ = march_level(origins, dirs, edges, read, occupied, stats, terminate)
         w = volume_weights(sigma, edges)
         n_next = cfg.proposal_samples[level + 1] if level + 1 < len(model.proposals) else cfg.samples

@@ -161,10 +161,9 @@ class _Densities:
 
     def world(self, pts: torch.Tensor, k: float) -> torch.Tensor:
         """Density (P,) at world points (normalised with the scene box, as `place` does) read at k."""
-        lo, hi = self.box
         out = torch.empty(pts.shape[0], device=pts.device)
         for s in range(0, pts.shape[0], self.chunk):
-            xyz = ((pts[s: s + self.chunk] - lo) * (2.0 / (hi - lo)) - 1.0).clamp(-1, 1)
+            xyz = self.model.to_field(pts[s: s + self.chunk], self.box)
             out[s: s + self.chunk] = self.model.field.density(xyz, torch.full_like(xyz[:, 0], k))[0]
         self.reads += pts.shape[0]
         return out

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import torch
 
 from .config import SamplerConfig
-from .field import LiveSceneModel, normalise
+from .field import LiveSceneModel
 
 
 @dataclass
@@ -137,7 +137,7 @@ def render_rays(model: LiveSceneModel, origins: torch.Tensor, dirs: torch.Tensor
                 place = model.place(pts, d, vals, box, grad_logits=False)
             xyz, k = place.xyz, place.k
         else:
-            xyz, k = normalise(pts, box), None
+            xyz, k = model.to_field(pts, box), None
         sigma = prop(xyz, k).view(r, -1)
         w = volume_weights(sigma, edges)
         proposals.append((edges, w))

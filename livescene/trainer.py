@@ -36,11 +36,11 @@ from interreal.report import StageReport, read_report
 from . import losses as L
 from .articulation import fit_hulls
 from .config import TrainConfig, check_config, resolve
-from .data import RayData, Views, load_views, scored_mse, transient_at
+from .data import RayData, Views, load_views, measured_counts, scored_mse, sparse_points, transient_at
 from .device import ThreadTrial, describe, select_device
 from .errors import CheckpointError, DivergenceError, LiveSceneError, writing
 from .evaluate import pick_frames
-from .field import LiveSceneModel
+from .field import LiveSceneModel, normalise
 from .fitcheck import LOW_FIT_PSNR, label_warnings, learned_states, state_warnings
 from .occupancy import build_cost, build_grid
 from .render import render_view
@@ -60,6 +60,10 @@ def build_model(cfg: TrainConfig, views: Views) -> tuple[TrainConfig, LiveSceneM
     motions = part_motions(cfg.model.motion, views)
     cfg.model.motion = "rigid" if motions else "none"
     model = LiveSceneModel(cfg.model, views.n_objects)
+    points = sparse_points(views.dataset) if cfg.model.warp == "points" else None
+    if points is not None:
+        box = (torch.as_tensor(views.box_lo), torch.as_tensor(views.box_hi))
+        model.warp.fit(normalise(torch.as_tensor(points, dtype=torch.float32), box), cfg.model.warp_uniform)
     if motions:
         model.motions.load(motions)
     if model.appearance is not None:
@@ -378,6 +382,10 @@ class Trainer:
         if self.model.motions is not None:
             rigid = [self.views.names[o] for o in self.model.motions.rigid(ds.n_objects)]
             print(f"  rigid parts (articulation.json): {', '.join(rigid)}; read at k = {m.part_k}", flush=True)
+        measured = measured_counts(self.views) if self.cfg.measured_states else {}
+        if measured:
+            print("  states measured by `interreal motions` (Lvar's targets there, over the labels): "
+                  + ", ".join(f"{name} {n} frames" for name, n in measured.items()), flush=True)
         if self.step == 0:
             self.save_checkpoint()
         if self.max_minutes and not self._grid_s:

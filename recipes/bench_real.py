@@ -116,7 +116,7 @@ def run_training(ds: Path, out: Path, minutes: float, threads: int) -> dict:
     ev = json.loads((out / "real_eval.json").read_text())
     flat = {k: v for k, v in ev.items() if isinstance(v, (int, float))}
     return {"train_s": train_s, "steps": ev.get("step"),
-            **{k: flat[k] for k in sorted(flat) if "psnr" in k or "ssim" in k},
+            **{k: flat[k] for k in sorted(flat) if "psnr" in k or "ssim" in k or "state_mae" in k or k == "mask_iou"},
             "part_moves": part_change(run), **hand_shows(run)}
 
 

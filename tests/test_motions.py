@@ -245,6 +245,18 @@ def test_motions_of_a_simulated_capture_match_the_truth(tmp_path):
     assert drawer["axis_deg"] < 10 and drawer["range_error"] < 0.1, drawer  # 6.7 deg, 2 % when written
     rep = json.loads((ds / "reports" / "motions.json").read_text())
     assert rep["status"] == "ok" and rep["figures"]["measured"] == 2
+    # every registered frame's measured state travels with the motion (what training fits the states to), and on
+    # the labelled frames (the simulator's exact states) it agrees with them
+    from interreal.dataset import load_dataset
+
+    dset = load_dataset(ds)
+    labels, given = dset.label_matrix()
+    for o, name in enumerate(dset.object_names):
+        measured = dset.articulation[name].measured_states([f.fid for f in dset.frames])
+        ok = np.isfinite(measured)
+        assert ok.sum() >= 30, (name, int(ok.sum()))
+        both = ok & given[:, o]
+        assert both.sum() >= 3 and np.median(np.abs(measured[both] - labels[both, o])) < 0.05, name
     # a second run with the same inputs reuses the first
     before = (ds / "articulation.json").stat().st_mtime_ns
     assert cli.main(["motions", str(ds)]) == 0

@@ -117,6 +117,19 @@ class Articulation:
         rot = Rotation.from_rotvec(np.asarray(self.axis, float) * (s * self.range)).as_matrix()
         return rot, self.origin - rot @ self.origin
 
+    def measured_states(self, fids: list[str]) -> np.ndarray:
+        """(N,) each frame's state as `interreal motions` measured it from the part's displacement (`frame_states`:
+        {frame id: state}), NaN where it measured none (not registered, or a motion written by hand)."""
+        found = self.extra.get("frame_states")
+        out = np.full(len(fids), np.nan)
+        if not isinstance(found, dict):
+            return out
+        for i, fid in enumerate(fids):
+            v = found.get(fid)
+            if isinstance(v, (int, float)) and math.isfinite(v):
+                out[i] = float(v)
+        return out
+
     def to_json(self) -> dict[str, Any]:
         return {"type": self.kind, "axis": [float(v) for v in self.axis],
                 "origin": [float(v) for v in self.origin], "range": float(self.range), **self.extra}

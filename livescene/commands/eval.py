@@ -53,7 +53,7 @@ def main(args) -> int:
     for line in support_lines(res.get("unsupported") or []):
         print(f"livescene eval: {line}")
     keys = ["psnr", "psnr_interpolated", "ssim", "mask_iou", "depth_l1", "state_mae", "state_mae_labelled_train",
-            "state_mae_labelled_held_out", "novel_state_psnr", "composition_psnr"]
+            "state_mae_labelled_held_out", "state_mae_measured_held_out", "novel_state_psnr", "composition_psnr"]
     print("livescene eval: " + ", ".join(f"{k} {res[k]:.4g}" for k in keys if res.get(k) is not None)
           + f" ({res['speed']['renderer']} renderer, {res['speed']['seconds_per_frame'] or 0:.2f} s a frame, "
             f"{res['speed']['rays_per_s'] or 0:,} rays/s) -> {args.out}")

@@ -33,7 +33,6 @@ from interreal import atomic
 
 from ..articulation import KIND_CODES
 from ..errors import MissingExtraError
-from ..field import normalise
 from ..occupancy import grid_for
 from ..sampler import volume_weights
 
@@ -110,7 +109,7 @@ class FieldReader:
         out = torch.empty(pts.shape[0], device=self.device)
         for s in range(0, pts.shape[0], CHUNK):
             p = pts[s: s + CHUNK]
-            out[s: s + CHUNK] = self.model.field.density(normalise(p, self.box), self._k(owner, p.shape[0]))[0]
+            out[s: s + CHUNK] = self.model.field.density(self.model.to_field(p, self.box), self._k(owner, p.shape[0]))[0]
         return out
 
     @torch.no_grad()
@@ -156,7 +155,7 @@ class FieldReader:
         out = torch.empty(pts.shape[0], 3, device=self.device)
         for s in range(0, pts.shape[0], CHUNK):
             p = pts[s: s + CHUNK]
-            _, h = self.model.field.density(normalise(p, self.box), self._k(owner, p.shape[0]))
+            _, h = self.model.field.density(self.model.to_field(p, self.box), self._k(owner, p.shape[0]))
             out[s: s + CHUNK] = self.model.field.color(h, dirs[s: s + CHUNK])
         return out
 

@@ -10,6 +10,8 @@ import torch
 
 from interreal.dataset import label_shortage
 
+from .data import measured_counts, measured_targets
+
 
 # below this, the renders are not to be trusted (held-out PSNR of runs that are still far from converged); the
 # label figures are interreal.dataset.MIN_LABELS / MIN_LABEL_FRACTION
@@ -28,19 +30,25 @@ def learned_states(trainer) -> tuple[np.ndarray, Any]:
 
 
 def state_warnings(values: np.ndarray, views) -> list[tuple[str, str]]:
-    """Warn when the learned states miss the labels: on training frames (not fitted) or on held-out labelled frames
-    (never trained on, so their error estimates the error on every unlabelled frame)."""
+    """Warn when the learned states miss what Lvar fits them to (the labels, or where `interreal motions` measured
+    a frame's state, that state: `data.measured_targets`): on training frames (not fitted) or on held-out frames
+    (never trained on, so their error estimates the error on every other frame). Labels that disagree with the
+    measured states are `interreal motions`' warning (flagged labels), not a failed fit."""
     labels, given_all = views.dataset.label_matrix()
+    measured = bool(getattr(views.dataset, "articulation", None)) and bool(measured_counts(views))
+    if measured:
+        labels, given_all = measured_targets(views.dataset, labels, given_all)
+    what = "labelled or measured" if measured else "labelled"
     out = []
     for k, name in enumerate(views.names):
-        for which, frames in (("labelled training", views.train), ("held-out labelled", views.held_out)):
+        for which, frames in (("training", views.train), ("held-out", views.held_out)):
             idx = [i for i in frames if given_all[i, k]]
             if not idx:
                 continue
             err = float(np.abs(values[idx, k] - labels[idx, k]).mean())
             if err > MAX_STATE_ERROR:
-                out.append((f"'{name}': learned states miss the {which} frames by {err:.2f} on average: its states "
-                            f"are unreliable (train longer, or add labels)", "states-unreliable"))
+                out.append((f"'{name}': learned states miss the {what} {which} frames by {err:.2f} on average: its "
+                            f"states are unreliable (train longer, or add labels)", "states-unreliable"))
     return out
 
 

@@ -78,3 +78,22 @@ def test_eval_scores_the_learned_states_against_the_measured_ones_on_held_out_fr
     assert measured_state_errors(learned, views)["state_mae_measured_held_out"] == pytest.approx(0.1)
     plain = load_views(toy_dataset(tmp_path / "plain", n_frames=8), load_preset("tiny"))
     assert measured_state_errors(np.zeros((8, 1)), plain) == {}
+
+
+def test_states_that_follow_the_measurement_are_no_failed_fit(tmp_path):
+    """Learned states on the measured states, away from eyeballed labels that disagree with them: no warning (the
+    labels are `interreal motions`' to flag); states off the measurement: the warning."""
+    from livescene.data import load_views
+    from livescene.fitcheck import state_warnings
+
+    ds, fids, measured = _with_measured(tmp_path)
+    views = load_views(ds, load_preset("tiny"))
+    labels, given = views.dataset.label_matrix()
+    follow = np.array([[min(measured[f], 1.0) if f in measured else labels[i, 0]] for i, f in enumerate(fids)])
+    both = [i for i, f in enumerate(fids) if f in measured and given[i, 0]]
+    assert np.abs(follow[both, 0] - labels[both, 0]).mean() > 0.1  # the labels disagree with the geometry
+    assert state_warnings(follow, views) == []
+    off = follow.copy()
+    off[views.train] += 0.3
+    warned = state_warnings(np.clip(off, 0, 1), views)
+    assert warned and "labelled or measured training" in warned[0][0]

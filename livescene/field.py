@@ -2,7 +2,8 @@
 an interaction probability field that tells each 3-D sample which object it belongs to, proposal density
 fields, and the learnable per-frame variable that gives each frame's object states.
 
-Coordinates given to the fields are normalised to [-1, 1] by the scene box; k is in [0, 1] (mapped to [-1, 1]).
+Coordinates given to the fields are normalised to [-1, 1] by the scene box, then warped per axis towards where the
+SfM points are (`AxisWarp`, `LiveSceneModel.to_field`); k is in [0, 1] (mapped to [-1, 1]).
 Object slots are fixed (`max_objects`) so the parameter count does not depend on the scene's object count;
 the background is the last probability slot. With rigid part motions (`model.motion`, `livescene.articulation`)
 a moving part's samples are read in its rest frame: `LiveSceneModel.place` decides, per sample, who owns it and

@@ -284,6 +284,7 @@ class Views:
     box_lo: np.ndarray
     box_hi: np.ndarray
     box_source: str
+    measured_states: bool = False  # `labels` hold the measured states where there are any (`measured_targets`)
 
     @property
     def names(self) -> list[str]:
@@ -352,7 +353,8 @@ def load_views(path: str | Path, cfg: TrainConfig, check_masks: bool = True) -> 
         lo, hi, src = scene_box(ds)
     views = Views(dataset=ds, c2w_gl=np.stack([f.c2w for f in ds.frames]), intrinsics=intrs, times=frame_times(ds),
                   labels=targets, given=given, train=train, held_out=held,
-                  box_lo=lo.astype(np.float32), box_hi=hi.astype(np.float32), box_source=src)
+                  box_lo=lo.astype(np.float32), box_hi=hi.astype(np.float32), box_source=src,
+                  measured_states=cfg.measured_states)
     check_views(views)
     return views
 

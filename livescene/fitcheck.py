@@ -35,7 +35,7 @@ def state_warnings(values: np.ndarray, views) -> list[tuple[str, str]]:
     (never trained on, so their error estimates the error on every other frame). Labels that disagree with the
     measured states are `interreal motions`' warning (flagged labels), not a failed fit."""
     labels, given_all = views.dataset.label_matrix()
-    measured = bool(getattr(views.dataset, "articulation", None)) and bool(measured_counts(views))
+    measured = getattr(views, "measured_states", False) and bool(measured_counts(views))
     if measured:
         labels, given_all = measured_targets(views.dataset, labels, given_all)
     what = "labelled or measured" if measured else "labelled"

@@ -97,3 +97,7 @@ def test_states_that_follow_the_measurement_are_no_failed_fit(tmp_path):
     off[views.train] += 0.3
     warned = state_warnings(np.clip(off, 0, 1), views)
     assert warned and "labelled or measured training" in warned[0][0]
+    cfg = load_preset("tiny")
+    cfg.measured_states = False  # a run fitted to the labels alone is checked against the labels
+    warned = state_warnings(follow, load_views(ds, cfg))
+    assert warned and "labelled training" in warned[0][0]

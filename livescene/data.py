@@ -359,34 +359,31 @@ def load_views(path: str | Path, cfg: TrainConfig, check_masks: bool = True) -> 
     return views
 
 
-def measured_targets(ds: LiveSceneDataset, labels: np.ndarray, given: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Lvar's targets (N, M) and where they are given: the labels, with each frame's measured state
-    (`Articulation.measured_states`) in their place where `interreal motions` measured one. The labels then only
-    fix a motion's ends and direction (the measurement is calibrated on them) and cover the frames it missed."""
+def measured_matrix(ds: LiveSceneDataset) -> np.ndarray:
+    """(N, M) each frame's state as `interreal motions` measured it (`Articulation.measured_states`), clipped to the
+    state range; NaN where none was measured (no motion, or the frame not registered)."""
     fids = [f.fid for f in ds.frames]
-    labels, given = labels.copy(), given.copy()
+    out = np.full((len(fids), ds.n_objects), np.nan)
     for o, name in enumerate(ds.object_names):
         motion = ds.articulation.get(name)
-        if motion is None:
-            continue
-        measured = motion.measured_states(fids)
-        ok = np.isfinite(measured)
-        labels[ok, o] = np.clip(measured[ok], 0.0, 1.0)
-        given[ok, o] = True
-    return labels, given
+        if motion is not None:
+            out[:, o] = np.clip(motion.measured_states(fids), 0.0, 1.0)
+    return out
+
+
+def measured_targets(ds: LiveSceneDataset, labels: np.ndarray, given: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lvar's targets (N, M) and where they are given: the labels, with each frame's measured state
+    (`measured_matrix`) in their place where `interreal motions` measured one. The labels then only fix a motion's
+    ends and direction (the measurement is calibrated on them) and cover the frames it missed."""
+    measured = measured_matrix(ds)
+    ok = np.isfinite(measured)
+    return np.where(ok, measured, labels), given | ok
 
 
 def measured_counts(views: Views) -> dict[str, int]:
     """{object: training frames whose Lvar target is a measured state} (only objects with any)."""
-    fids = [f.fid for f in views.dataset.frames]
-    out = {}
-    for name in views.names:
-        motion = views.dataset.articulation.get(name)
-        if motion is not None:
-            n = int(np.isfinite(motion.measured_states(fids))[views.train].sum())
-            if n:
-                out[name] = n
-    return out
+    counts = np.isfinite(measured_matrix(views.dataset))[views.train].sum(0)
+    return {name: int(n) for name, n in zip(views.names, counts) if n}
 
 
 def load_transient(views: Views, i: int) -> np.ndarray | None:

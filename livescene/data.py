@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -429,6 +430,39 @@ def load_frame(views: Views, i: int) -> tuple[np.ndarray, np.ndarray | None]:
     return rgb, mask
 
 
+class ErrorMap:
+    """Where the colour error is, per tile of each training frame, so a share of every batch goes there (instant-ngp's
+    error map). Uniform rays spend most of a batch on walls the field already draws; on the real laptop video (10
+    minutes on 2 cores) half of each batch drawn here took held-out PSNR from 26.00 to 26.42 dB. A tile holds a
+    running mean of its rays' squared error; it starts above any error, so every tile is visited before its own
+    error decides. Not saved: a resumed run starts it again."""
+
+    START = 0.05  # a tile's value before its first ray: above the squared error of all but the worst pixels
+    KEEP = 0.7  # running mean: the old value's share at each new ray
+    MAX_TILES = 1 << 22  # torch.multinomial's categories stay far below its 2^24 limit
+
+    def __init__(self, n_frames: int, h: int, w: int, train: torch.Tensor, tile: int = 16):
+        while len(train) * math.ceil(h / tile) * math.ceil(w / tile) > self.MAX_TILES:
+            tile *= 2
+        self.tile, self.h, self.w, self.train = tile, h, w, train
+        self.err = torch.full((n_frames, math.ceil(h / tile), math.ceil(w / tile)), self.START)
+
+    def draw(self, n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(frames, ys, xs) (n,): tiles of the training frames drawn by their error, a pixel uniform in each."""
+        sub = self.err[self.train]
+        th, tw = sub.shape[1:]
+        idx = torch.multinomial(sub.reshape(-1), n, replacement=True, generator=gen)
+        t = self.tile
+        ys = ((idx // tw) % th * t + torch.randint(t, (n,), generator=gen)).clamp(max=self.h - 1)
+        xs = (idx % tw * t + torch.randint(t, (n,), generator=gen)).clamp(max=self.w - 1)
+        return self.train[idx // (th * tw)], ys, xs
+
+    def record(self, f: torch.Tensor, ys: torch.Tensor, xs: torch.Tensor, err: torch.Tensor) -> None:
+        """Rays' squared colour errors (n,) into their tiles' running means (rays sharing a tile: one of them)."""
+        cell = (f, ys // self.tile, xs // self.tile)
+        self.err[cell] = self.KEEP * self.err[cell] + (1 - self.KEEP) * err.float()
+
+
 class RayData:
     """All training pixels in memory (uint8) with per-intrinsics direction grids; draws random ray batches."""
 
@@ -472,8 +506,12 @@ class RayData:
         self.train = torch.tensor(views.train, dtype=torch.long)
         key = [i for i in views.train if views.given[i].any()]
         self.keyframes = torch.tensor(key, dtype=torch.long)
+        self.errors = ErrorMap(n, h, w, self.train)
 
-    def sample(self, n: int, gen: torch.Generator, keyframe_fraction: float) -> dict[str, torch.Tensor]:
+    def sample(self, n: int, gen: torch.Generator, keyframe_fraction: float,
+               error_share: float = 0.0) -> dict[str, torch.Tensor]:
+        """A batch of n rays: `keyframe_fraction` from frames with state labels, of the others `error_share` drawn
+        by the error map (`ErrorMap`, fed by `record`), the rest uniform over the training pixels."""
         n_key = int(round(n * keyframe_fraction)) if len(self.keyframes) else 0
         f_all = self.train[torch.randint(len(self.train), (n - n_key,), generator=gen)]
         if n_key:
@@ -481,9 +519,19 @@ class RayData:
             f_all = torch.cat([f_all, f_key])
         ys = torch.randint(self.h, (n,), generator=gen)
         xs = torch.randint(self.w, (n,), generator=gen)
+        n_err = int(round((n - n_key) * error_share))
+        if n_err:
+            f_all[:n_err], ys[:n_err], xs[:n_err] = self.errors.draw(n_err, gen)
         if self.transient is not None:
             f_all, ys, xs = self.avoid_transients(f_all, ys, xs, n - n_key, gen)
-        return self.gather(f_all, ys, xs)
+        out = self.gather(f_all, ys, xs)
+        out["pixel"] = torch.stack([f_all, ys, xs], -1).to(self.device)
+        return out
+
+    def record(self, batch: dict[str, torch.Tensor], err: torch.Tensor) -> None:
+        """The batch's squared colour errors (n,) into the error map."""
+        f, ys, xs = batch["pixel"].cpu().unbind(-1)
+        self.errors.record(f, ys, xs, err.detach().cpu())
 
     def _add_transient(self, i: int, tr: np.ndarray | None, n: int) -> None:
         """Record frame i's transient pixels; their class becomes unknown (no probability-field loss there)."""

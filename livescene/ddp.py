@@ -103,9 +103,22 @@ class ShardedRays:
     def __getattr__(self, name: str) -> Any:
         return getattr(self._data, name)
 
-    def sample(self, n: int, gen: torch.Generator, keyframe_fraction: float) -> dict[str, torch.Tensor]:
-        full = self._data.sample(n * self._ranks.world, gen, keyframe_fraction)
+    def sample(self, n: int, gen: torch.Generator, keyframe_fraction: float,
+               error_share: float = 0.0) -> dict[str, torch.Tensor]:
+        full = self._data.sample(n * self._ranks.world, gen, keyframe_fraction, error_share)
         return {k: v[self._ranks.rank:: self._ranks.world] for k, v in full.items()}
+
+    def record(self, batch: dict[str, torch.Tensor], err: torch.Tensor) -> None:
+        """Every rank records the whole global batch, in its order: each draws the next global batch from its own
+        error map, so the maps must stay alike."""
+        w = self._ranks.world
+        parts = [torch.cat([batch["pixel"].float(), err.detach()[:, None].float()], -1)]
+        if w > 1:
+            parts = [torch.empty_like(parts[0]) for _ in range(w)]
+            dist.all_gather(parts, torch.cat([batch["pixel"].float(), err.detach()[:, None].float()], -1))
+        rows = torch.stack(parts, 1).reshape(-1, 4).cpu()  # rank r held global rays r, r + w, ...: interleaved back
+        pixel = rows[:, :3].long()
+        self._data.errors.record(pixel[:, 0], pixel[:, 1], pixel[:, 2], rows[:, 3])
 
 
 def average_gradients(params: list[torch.Tensor], ranks: Ranks) -> None:

@@ -173,7 +173,8 @@ class Trainer:
             "model": self.model.state_dict(),
             "optimizer": self.opt.state_dict(),
             "rng": {"gen": self.gen.get_state(), "gen_dev": self.gen_dev.get_state(), "torch": torch.get_rng_state(),
-                    "numpy": np.random.get_state(), "python": random.getstate()},
+                    "numpy": np.random.get_state(), "python": random.getstate(),
+                    "ray_errors": self.data.errors.err.clone()},  # where the next batches go (`data.ErrorMap`)
             "config": self.cfg.to_dict(),
             "meta": {"dataset": str(self.dataset_path), "names": self.views.names,
                      "box_lo": self.views.box_lo.tolist(), "box_hi": self.views.box_hi.tolist(),
@@ -195,6 +196,8 @@ class Trainer:
         torch.set_rng_state(rng["torch"])
         np.random.set_state(rng["numpy"])
         random.setstate(rng["python"])
+        if "ray_errors" in rng and rng["ray_errors"].shape == self.data.errors.err.shape:
+            self.data.errors.err.copy_(rng["ray_errors"])  # checkpoints from before the map: it starts again
         meta = ckpt["meta"]
         self.lr_scale = float(meta.get("lr_scale", 1.0))
         self.retries = int(meta.get("retries", 0))
@@ -263,8 +266,10 @@ class Trainer:
 
     def train_step(self) -> dict[str, float]:
         cfg = self.cfg
-        batch = self.data.sample(cfg.batch_rays, self.gen, cfg.keyframe_fraction)
-        terms, _ = self.losses(batch)
+        batch = self.data.sample(cfg.batch_rays, self.gen, cfg.keyframe_fraction, cfg.error_rays)
+        terms, rendered = self.losses(batch)
+        if cfg.error_rays:
+            self.data.record(batch, ((rendered.rgb.detach() - batch["rgb"]) ** 2).mean(-1))
         total = L.total_loss(terms, cfg.loss, cfg.reg_every)
         time_frac = self.elapsed / self.train_budget() if self.max_minutes else 0.0
         lr = cfg.lr * self.lr_scale * lr_factor(self.step, cfg, time_frac)

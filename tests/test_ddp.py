@@ -22,7 +22,8 @@ def _cfg(batch: int, steps: int):
     from livescene.config import apply_overrides, load_preset
 
     cfg = apply_overrides(load_preset("tiny"), ["loss.repulsion=0", "lr_final_ratio=1", "warmup=0",
-                                                "keyframe_fraction=0.25", "final_eval_max_side=32"])
+                                                "keyframe_fraction=0.25", "final_eval_max_side=32",
+                                                "error_rays=0.5"])  # the ranks' error maps must stay alike
     cfg.batch_rays, cfg.steps = batch, steps
     return cfg
 

@@ -112,10 +112,11 @@ class ShardedRays:
         """Every rank records the whole global batch, in its order: each draws the next global batch from its own
         error map, so the maps must stay alike."""
         w = self._ranks.world
-        parts = [torch.cat([batch["pixel"].float(), err.detach()[:, None].float()], -1)]
+        mine = torch.cat([batch["pixel"].float(), err.detach()[:, None].float()], -1)
+        parts = [mine]
         if w > 1:
-            parts = [torch.empty_like(parts[0]) for _ in range(w)]
-            dist.all_gather(parts, torch.cat([batch["pixel"].float(), err.detach()[:, None].float()], -1))
+            parts = [torch.empty_like(mine) for _ in range(w)]
+            dist.all_gather(parts, mine)
         rows = torch.stack(parts, 1).reshape(-1, 4).cpu()  # rank r held global rays r, r + w, ...: interleaved back
         pixel = rows[:, :3].long()
         self._data.errors.record(pixel[:, 0], pixel[:, 1], pixel[:, 2], rows[:, 3])

@@ -62,3 +62,12 @@ def test_the_batch_carries_its_pixels_and_records_its_error(tmp_path):
     f, ys, xs = data.sample(200, gen, 0.0, 0.5)["pixel"].unbind(-1)
     hit = (f == t) & (ys < 16) & (xs < 16)
     assert bool(hit[:100].all()) and float(hit[100:].float().mean()) < 0.5
+
+
+def test_a_diverged_ray_leaves_the_map_a_distribution():
+    em = _map()
+    f, ys, xs = torch.tensor([0, 1]), torch.tensor([0, 0]), torch.tensor([0, 0])
+    em.record(f, ys, xs, torch.tensor([float("nan"), 0.0]))
+    assert float(em.err[0, 0, 0]) == float(torch.tensor(ErrorMap.START))  # the NaN left out
+    assert float(em.err[1, 0, 0]) > 0  # a perfect ray: still drawable
+    em.draw(10, torch.Generator().manual_seed(0))

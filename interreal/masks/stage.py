@@ -297,9 +297,13 @@ def _occluded_by_transients(ds: Path, fids: list[str], hl: H.Health, n_obj: int,
     """Lost stretches where a person / hand stands in front of the object: on every frame of the stretch, the
     object's mask on a frame beside the stretch (before or after it: the side the person hid it from; a frame
     flagged only as jumped still shows the object) is, for at least `share` of its pixels, either still the object
-    or covered by the transient layer. They are occluded, not lost: taken out of the lost state (no warning, no
-    suggested keyframe), their confidence that of the frame the object was seen on. Returns object -> the
-    stretches so relabelled."""
+    or covered by the transient layer; or what of it neither accounts for is under `health.LOST_AREA` of the
+    object's size beside the stretch (the larger of the two sides), the size under which a mask counts as lost:
+    then even a perfect mask would be a sliver, and an empty one is explained by the occluder (a keyframe taken
+    while the person already hid most of the object leaves only a sliver as the reference, whose few uncovered
+    pixels are no evidence). They are occluded, not lost: taken out of the lost state (no warning, no suggested
+    keyframe), their confidence that of the frame the object was seen on. Returns object -> the stretches so
+    relabelled."""
     out: dict[int, list[tuple[int, int]]] = {}
     lost = H.STATES.index("lost")
     for k in range(n_obj):
@@ -307,8 +311,10 @@ def _occluded_by_transients(ds: Path, fids: list[str], hl: H.Health, n_obj: int,
         for a, b in hl.stretches["lost"][k]:
             seen = [i for i in (a - 1, b + 1) if 0 <= i < len(fids) and hl.state[i, k] != lost]
             cover = {i: _covered(ds, fids, i, range(a, b + 1), k) for i in seen}
-            ref = max(cover, key=cover.__getitem__) if cover else None
-            if ref is not None and cover[ref] >= share:
+            size = max((c[1] for c in cover.values()), default=0)
+            ok = [i for i, (c, n) in cover.items() if n and (c >= share or (1 - c) * n <= H.LOST_AREA * size)]
+            if ok:
+                ref = max(ok, key=lambda i: cover[i][0])
                 hl.state[a:b + 1, k] = 0
                 hl.predicted[a:b + 1, k] = hl.predicted[ref, k]
                 out.setdefault(k, []).append((a, b))
@@ -318,19 +324,19 @@ def _occluded_by_transients(ds: Path, fids: list[str], hl: H.Health, n_obj: int,
     return out
 
 
-def _covered(ds: Path, fids: list[str], ref: int, frames: range, k: int) -> float:
+def _covered(ds: Path, fids: list[str], ref: int, frames: range, k: int) -> tuple[float, int]:
     """Least share, over `frames`, of object k's mask on frame `ref` that the object's mask there or the transient
-    layer accounts for (the pixels still shown, plus those a person / hand now hides)."""
+    layer accounts for (the pixels still shown, plus those a person / hand now hides); with that mask's area."""
     obj = np.load(mask_file(ds, fids[ref]))[..., k]
     if not obj.any():
-        return 0.0
+        return 0.0, 0
     least = 1.0
     for i in frames:
         tr = read_transient(ds, fids[i], obj.shape)
         hidden = float((tr & obj).sum()) if tr is not None else 0.0
         shown = float(np.load(mask_file(ds, fids[i]))[..., k].sum())
         least = min(least, (shown + hidden) / obj.sum())
-    return least
+    return least, int(obj.sum())
 
 
 def _stretch_text(fids: list[str], runs: list[tuple[int, int]]) -> str:

@@ -397,3 +397,51 @@ def test_scores_leave_transient_pixels_out(tiny):
     pred = gt.copy()
     pred[:, :4] = 1.0  # the render shows the scene where the frame shows a hand: no error counted
     assert scored_mse(pred, gt, tr) == 0.0 and scored_mse(pred, gt) == pytest.approx(0.25)
+
+
+def test_a_sliver_left_uncovered_beside_a_lost_stretch_is_occlusion_not_loss(tmp_path):
+    """`stage._occluded_by_transients` on hand-made masks: the object shows only a sliver on the frame before the
+    stretch (the person already hides the rest) and all of itself after it (the person gone). Part of the sliver is
+    uncovered again during the stretch, so neither side's mask is 70 % shown or hidden; but what is left unexplained
+    is under `health.LOST_AREA` of the object's size beside the stretch: occluded. The same stretch with the person
+    moved off the object stays lost."""
+    from interreal.masks import health as H
+    from interreal.masks.stage import _occluded_by_transients
+    from interreal.transients import write_transient
+
+    h, w, n = 60, 80, 5
+    fids = [fid_of_index(i) for i in range(n)]
+    obj = np.zeros((h, w), bool)
+    obj[10:50, 10:60] = True                       # 2000 px when seen whole (frame 4)
+    sliver = np.zeros((h, w), bool)
+    sliver[10:50, 55:60] = True                    # 200 px shown on frame 0 (the person covers the rest)
+    person = np.zeros((h, w), bool)
+    person[5:55, 30:58] = True                     # frames 1-3: the sliver's 3 left columns of 5, 0.56 of the whole
+
+    def masks(i: int) -> np.ndarray:
+        m = sliver if i == 0 else obj if i == n - 1 else np.zeros((h, w), bool)
+        out = np.zeros((h, w, 2), bool)
+        out[..., 0], out[..., 1] = m, ~m
+        return out
+
+    def verdict(person_at: np.ndarray) -> tuple[dict, list]:
+        (tmp_path / "masks").mkdir(exist_ok=True)
+        for i in range(n):
+            np.save(tmp_path / "masks" / f"{fids[i]}.npy", masks(i))
+            if 1 <= i <= 3:
+                write_transient(tmp_path, fids[i], person_at)
+        state = np.zeros((n, 1), int)
+        state[1:4, 0] = H.STATES.index("lost")
+        hl = H.Health(predicted=np.full((n, 1), 0.5), state=state, features=np.zeros((n, 1, len(H.FEATURES))),
+                      stretches={"lost": [[(1, 3)]]})
+        return _occluded_by_transients(tmp_path, fids, hl, 1), hl.stretches["lost"][0]
+
+    # frame 0's sliver: 120 of 200 px hidden (0.6 < 0.7), 80 px unexplained (fewer than hidden) = 0.04 of the 2000 px
+    # seen on frame 4; frame 4's whole object: 1120 of 2000 px hidden (0.56 < 0.7)
+    occ, still_lost = verdict(person)
+    assert occ == {0: [(1, 3)]} and still_lost == []
+    away = np.zeros((h, w), bool)
+    away[0:10, 0:10] = True                        # the person elsewhere: the object is simply lost, though what
+    # frame 0 showed of it (200 px) is itself no more than LOST_AREA of its size
+    occ, still_lost = verdict(away)
+    assert occ == {} and still_lost == [(1, 3)]

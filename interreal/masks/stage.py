@@ -7,7 +7,7 @@ from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -297,13 +297,13 @@ def _occluded_by_transients(ds: Path, fids: list[str], hl: H.Health, n_obj: int,
     """Lost stretches where a person / hand stands in front of the object: on every frame of the stretch, the
     object's mask on a frame beside the stretch (before or after it: the side the person hid it from; a frame
     flagged only as jumped still shows the object) is, for at least `share` of its pixels, either still the object
-    or covered by the transient layer; or what of it neither accounts for is under `health.LOST_AREA` of the
-    object's size beside the stretch (the larger of the two sides), the size under which a mask counts as lost:
-    then even a perfect mask would be a sliver, and an empty one is explained by the occluder (a keyframe taken
-    while the person already hid most of the object leaves only a sliver as the reference, whose few uncovered
-    pixels are no evidence). They are occluded, not lost: taken out of the lost state (no warning, no suggested
-    keyframe), their confidence that of the frame the object was seen on. Returns object -> the stretches so
-    relabelled."""
+    or covered by the transient layer; or the transient layer hides more of it than neither accounts for, and that
+    rest is under `health.LOST_AREA` of the object's size beside the stretch (the larger of the two sides), the size
+    under which a mask counts as lost: then even a perfect mask would be a sliver, and an empty one is explained by
+    the occluder (a keyframe taken while the person already hid most of the object leaves only a sliver as the
+    reference, a few of whose pixels the person uncovers again as it moves). They are occluded, not lost: taken out
+    of the lost state (no warning, no suggested keyframe), their confidence that of the frame the object was seen
+    on. Returns object -> the stretches so relabelled."""
     out: dict[int, list[tuple[int, int]]] = {}
     lost = H.STATES.index("lost")
     for k in range(n_obj):
@@ -311,10 +311,11 @@ def _occluded_by_transients(ds: Path, fids: list[str], hl: H.Health, n_obj: int,
         for a, b in hl.stretches["lost"][k]:
             seen = [i for i in (a - 1, b + 1) if 0 <= i < len(fids) and hl.state[i, k] != lost]
             cover = {i: _covered(ds, fids, i, range(a, b + 1), k) for i in seen}
-            size = max((c[1] for c in cover.values()), default=0)
-            ok = [i for i, (c, n) in cover.items() if n and (c >= share or (1 - c) * n <= H.LOST_AREA * size)]
+            size = max((c.area for c in cover.values()), default=0)
+            ok = [i for i, c in cover.items() if c.area and (c.share >= share or (
+                c.hidden >= c.unexplained and c.unexplained <= H.LOST_AREA * size))]
             if ok:
-                ref = max(ok, key=lambda i: cover[i][0])
+                ref = max(ok, key=lambda i: cover[i].share)
                 hl.state[a:b + 1, k] = 0
                 hl.predicted[a:b + 1, k] = hl.predicted[ref, k]
                 out.setdefault(k, []).append((a, b))
@@ -324,19 +325,30 @@ def _occluded_by_transients(ds: Path, fids: list[str], hl: H.Health, n_obj: int,
     return out
 
 
-def _covered(ds: Path, fids: list[str], ref: int, frames: range, k: int) -> tuple[float, int]:
-    """Least share, over `frames`, of object k's mask on frame `ref` that the object's mask there or the transient
-    layer accounts for (the pixels still shown, plus those a person / hand now hides); with that mask's area."""
+class _Cover(NamedTuple):
+    """What accounts for object k's mask on a reference frame over a stretch (`_covered`), in pixels of that mask."""
+
+    share: float       # least share, over the stretch, that the object's mask there or the transient layer covers
+    area: int          # the reference mask's area
+    hidden: int        # least, over the stretch, that the transient layer hides
+    unexplained: int   # most, over the stretch, that neither covers
+
+
+def _covered(ds: Path, fids: list[str], ref: int, frames: range, k: int) -> _Cover:
+    """How much of object k's mask on frame `ref` the object's mask on each frame of `frames` or the transient layer
+    there accounts for (the pixels still shown, plus those a person / hand now hides)."""
     obj = np.load(mask_file(ds, fids[ref]))[..., k]
-    if not obj.any():
-        return 0.0, 0
-    least = 1.0
+    area = int(obj.sum())
+    if not area:
+        return _Cover(0.0, 0, 0, 0)
+    least, hidden_min, rest_max = 1.0, area, 0
     for i in frames:
         tr = read_transient(ds, fids[i], obj.shape)
-        hidden = float((tr & obj).sum()) if tr is not None else 0.0
-        shown = float(np.load(mask_file(ds, fids[i]))[..., k].sum())
-        least = min(least, (shown + hidden) / obj.sum())
-    return least, int(obj.sum())
+        hidden = int((tr & obj).sum()) if tr is not None else 0
+        shown = int(np.load(mask_file(ds, fids[i]))[..., k].sum())
+        least = min(least, (shown + hidden) / area)
+        hidden_min, rest_max = min(hidden_min, hidden), max(rest_max, max(area - shown - hidden, 0))
+    return _Cover(least, area, hidden_min, rest_max)
 
 
 def _stretch_text(fids: list[str], runs: list[tuple[int, int]]) -> str:

@@ -310,7 +310,8 @@ def _occluded_by_transients(ds: Path, fids: list[str], hl: H.Health, n_obj: int,
         kept = []
         for a, b in hl.stretches["lost"][k]:
             seen = [i for i in (a - 1, b + 1) if 0 <= i < len(fids) and hl.state[i, k] != lost]
-            cover = {i: _covered(ds, fids, i, range(a, b + 1), k) for i in seen}
+            stretch = _stretch_masks(ds, fids, range(a, b + 1), k) if seen else []
+            cover = {i: _covered(np.load(mask_file(ds, fids[i]))[..., k], stretch) for i in seen}
             size = max((c.area for c in cover.values()), default=0)
             ok = [i for i, c in cover.items() if c.area and (c.share >= share or (
                 c.hidden >= c.unexplained and c.unexplained <= H.LOST_AREA * size))]
@@ -331,24 +332,34 @@ class _Cover(NamedTuple):
     share: float       # least share, over the stretch, that the object's mask there or the transient layer covers
     area: int          # the reference mask's area
     hidden: int        # least, over the stretch, that the transient layer hides
-    unexplained: int   # most, over the stretch, that neither covers
+
+    @property
+    def unexplained(self) -> float:
+        """Most, over the stretch, that neither the object's mask nor the transient layer covers."""
+        return self.area * max(1.0 - self.share, 0.0)
 
 
-def _covered(ds: Path, fids: list[str], ref: int, frames: range, k: int) -> _Cover:
-    """How much of object k's mask on frame `ref` the object's mask on each frame of `frames` or the transient layer
-    there accounts for (the pixels still shown, plus those a person / hand now hides)."""
-    obj = np.load(mask_file(ds, fids[ref]))[..., k]
+def _stretch_masks(ds: Path, fids: list[str], frames: range, k: int) -> list[tuple[np.ndarray, np.ndarray | None]]:
+    """Object k's mask and the transient layer (None where there is none) on each frame of a stretch."""
+    out = []
+    for i in frames:
+        mask = np.load(mask_file(ds, fids[i]))[..., k]
+        out.append((mask, read_transient(ds, fids[i], mask.shape)))
+    return out
+
+
+def _covered(obj: np.ndarray, stretch: list[tuple[np.ndarray, np.ndarray | None]]) -> _Cover:
+    """How much of an object's mask `obj` on a reference frame its mask on each frame of the stretch (`_stretch_masks`)
+    or the transient layer there accounts for (the pixels still shown, plus those a person / hand now hides)."""
     area = int(obj.sum())
     if not area:
-        return _Cover(0.0, 0, 0, 0)
-    least, hidden_min, rest_max = 1.0, area, 0
-    for i in frames:
-        tr = read_transient(ds, fids[i], obj.shape)
+        return _Cover(0.0, 0, 0)
+    least, hidden_min = 1.0, area
+    for shown, tr in stretch:
         hidden = int((tr & obj).sum()) if tr is not None else 0
-        shown = int(np.load(mask_file(ds, fids[i]))[..., k].sum())
-        least = min(least, (shown + hidden) / area)
-        hidden_min, rest_max = min(hidden_min, hidden), max(rest_max, max(area - shown - hidden, 0))
-    return _Cover(least, area, hidden_min, rest_max)
+        least = min(least, (int(shown.sum()) + hidden) / area)
+        hidden_min = min(hidden_min, hidden)
+    return _Cover(least, area, hidden_min)
 
 
 def _stretch_text(fids: list[str], runs: list[tuple[int, int]]) -> str:

@@ -425,7 +425,11 @@ def test_keyframe_reach_counts_view_motion_from_the_nearest_keyframe():
     assert [(a, b) for a, b, _ in reach] == [(0, 4), (6, 14), (16, 19)]
     assert np.allclose([r for _, _, r in reach], [0.05, (5 * 0.01 + 5 * 0.05) / 2, 0.04])  # one-sided ends: whole
     assert reach_suggestion(motion, 6, 14, [5, 15]) in (11, 12)  # halfway by motion, not by frame count (10)
-    assert reach_suggestion(motion, 0, 4, [5, 15]) == 0 and reach_suggestion(motion, 16, 19, [5, 15]) == 19
+    # one-sided stretches: two thirds of their motion away from their keyframe (both new worst reaches equal)
+    assert reach_suggestion(motion, 0, 4, [5, 15]) == 2 and reach_suggestion(motion, 16, 19, [5, 15]) == 18
+    fast_start = np.r_[np.full(3, 0.1), np.full(9, 0.01)]  # 13 frames, keyframe 0: most motion in frames 0-3
+    assert reach_suggestion(fast_start, 1, 12, [0]) == 3  # by motion (0.3 of 0.39), not by frame count (8)
+    assert reach_suggestion(fast_start, 0, 11, [12]) == 1  # before the first keyframe: walked back from it (0.29)
     assert keyframe_reach(motion, list(range(20))) == []
 
 

@@ -150,3 +150,66 @@ def test_features_pick_the_object_among_look_alikes():
     where = np.zeros((h, w), bool)
     where[120:200, 210:290] = True
     assert iou(found, where) > 0.8, iou(found, where)
+
+
+def panning_pair(object_shift: int, seed: int = 3) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """Two frames of a textured scene panning 3 px left, with an orange textured disk moving `object_shift` px right
+    and an orange look-alike patch painted on the background (it pans with it). Returns the frames, the disk's mask
+    and the patch's mask in the second frame."""
+    w, h = 2 * W, 2 * H
+    rng = np.random.default_rng(seed)
+    scene = cv2.normalize(cv2.GaussianBlur(rng.integers(0, 255, (h, w + 40, 3), dtype=np.uint8), (0, 0), 2.0),
+                          None, 60, 150, cv2.NORM_MINMAX)
+    scene[..., 0] = (scene[..., 0] * 0.6).astype(np.uint8)
+    tex = cv2.GaussianBlur(rng.integers(0, 255, (h, w + 40), dtype=np.uint8), (0, 0), 1.5)
+    orange = np.stack([200 + tex // 8, 100 + tex // 5, 20 + tex // 8], -1).astype(np.uint8)
+    patch = np.zeros(scene.shape[:2], np.uint8)
+    cv2.circle(patch, (250, 170), 26, 1, -1)
+    scene[patch > 0] = orange[patch > 0]
+    frames, disk = [], None
+    for t in range(2):
+        img = np.ascontiguousarray(scene[:, 3 * t:3 * t + w])
+        disk = np.zeros((h, w), np.uint8)
+        cv2.circle(disk, (90 + object_shift * t, 70), 30, 1, -1)
+        shifted = np.roll(orange, object_shift * t, axis=1)[:, :w]  # the disk's own texture moves with it
+        img[disk > 0] = shifted[disk > 0]
+        frames.append(img)
+    return frames, disk > 0, patch[:, 3:3 + w] > 0
+
+
+def test_a_colour_find_that_moves_with_the_background_is_not_the_object():
+    """The flow tells a look-alike on the background from the object: where what is left of the object moves
+    against the background, a region found by colour that pans with the background is refused
+    (`Propagator._moves_apart`), and the rest of the object itself is not."""
+    frames, disk, patch = panning_pair(object_shift=5)
+    h, w = disk.shape
+    prop = Propagator(lambda i: frames[i], 2, (w, h), 1, TrackConfig(work_long_side=0))
+    ys, xs = np.nonzero(disk)
+    remnant = disk & (xs.mean() > np.arange(w))[None, :]  # the disk's left half is what the chain kept
+    assert not prop._moves_apart(1, 0, patch, remnant)
+    assert prop._moves_apart(1, 0, disk, remnant)
+    # an object that moves as the background does gives no evidence either way: the find is not refused
+    still, disk2, patch2 = panning_pair(object_shift=-3)
+    prop2 = Propagator(lambda i: still[i], 2, (w, h), 1, TrackConfig(work_long_side=0))
+    assert prop2._moves_apart(1, 0, patch2, disk2 & (xs.mean() > np.arange(w))[None, :])
+
+
+def test_a_refused_colour_find_leaves_the_map_and_counts():
+    """`Redetector.check` puts back no region that `moves_apart` refuses; it counts the refusal and keeps searching."""
+    rng = np.random.default_rng(1)
+    bg = background(rng)
+    tex = cv2.GaussianBlur(rng.integers(0, 255, (H, W), dtype=np.uint8), (0, 0), 1.0)
+    key = bg.copy()
+    truth = paint_disk(key, (40, 40), 12, tex)
+    soft, known = anchor_soft(truth, 1, (W, H))
+    det = Redetector(key, soft, known, RedetectConfig(), AppearanceConfig(), 1)
+    later = bg.copy()
+    paint_disk(later, (110, 80), 12, tex)
+    remnant = np.zeros_like(soft)
+    remnant[..., -1] = 1.0
+    remnant[38:41, 38:41] = (1.0, 0.0)  # a speck of the object is left where it was
+    bins = quantize(later, AppearanceConfig().bins)
+    out = det.check(remnant, later, bins, 5, lambda region, rest: False)
+    assert det.events == [] and det.refused == 1 and np.allclose(out, remnant)
+    out = det.check(remnant, later, bins, 6, lambda region, rest: True)
+    assert len(det.events) == 1 and det.events[0].how == "colour"

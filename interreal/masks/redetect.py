@@ -18,7 +18,10 @@ object until it is found:
 - a candidate is accepted when ORB features of the keyframe's object match into it (`min_matches` matches
   that pass the ratio test and agree on one similarity transform), or, from colour alone, when colour tells the
   object apart on the keyframe itself (`heldout_information` at least `min_info`) and the candidate stands out
-  (its score at least `margin` times the runner-up's);
+  (its score at least `margin` times the runner-up's), and, where part of the object is still in the chain's
+  mask, the candidate does not move with the background while that remnant moves otherwise (the chain's flow
+  and one homography each, `Propagator._moves_apart`): a look-alike on the background (a patch of dirt the
+  colour of a muddy bike) is not the object;
 - the accepted region is put back into the soft map as the object, and propagation carries on from it.
 
 No constant depends on one footage: sizes are relative to the object's own recent size, smoothing and
@@ -30,6 +33,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -103,11 +107,16 @@ class Redetector:
         self.key_pts: list[np.ndarray] = []
         self.key_desc: list[np.ndarray | None] = []
         self.events: list[Event] = []
+        self.refused = 0  # colour finds refused because they moved with the background (`check`'s moves_apart)
 
-    def check(self, soft: np.ndarray, image: np.ndarray, bins: np.ndarray, pos: int) -> np.ndarray:
+    def check(self, soft: np.ndarray, image: np.ndarray, bins: np.ndarray, pos: int,
+              moves_apart: Callable[[np.ndarray, np.ndarray], bool] | None = None) -> np.ndarray:
         """The soft map of frame `pos`, with every collapsed object searched for and, when found, put back.
 
-        image: the frame's work-size RGB; bins: its colour bins (`quantize`)."""
+        image: the frame's work-size RGB; bins: its colour bins (`quantize`); moves_apart(region, remnant): False
+        when the flow says the region moves with the background where what is left of the object does not
+        (`Propagator._moves_apart`). Colour alone finds look-alike background (a dirt track under a muddy bike),
+        so a region found by colour beside a remnant that still moves as the object must move as it does."""
         if not self.cfg.enabled:
             return soft
         labels = argmax_labels(soft)
@@ -130,6 +139,9 @@ class Redetector:
             if found is None:
                 continue
             region, how = found
+            if how == "colour" and area and moves_apart is not None and not moves_apart(region, mask):
+                self.refused += 1
+                continue
             soft = _reseed(soft, k, region)
             labels = argmax_labels(soft)
             self.sizes[k].clear()

@@ -299,6 +299,33 @@ class Propagator:
             return None, []
         return bg, [self._fit_plane(soft[..., k] > 0.5, st, rng) for k in range(self.k)]
 
+    def _moves_apart(self, t: int, prev: int, region: np.ndarray, remnant: np.ndarray) -> bool:
+        """False when the flow of frame t shows `region` (work-size mask) moving with the background where the
+        `remnant` of its object moves otherwise; True when it moves with the remnant, or nothing tells (the two
+        motions agree there, or either fit is untrusted).
+
+        Each motion is one homography fit to the flow from t back to prev (as `_plane_fits`, on this frame's
+        pixels); a pixel of the region's new part counts for the one whose residual is smaller, where the two
+        predict displacements more than one flow tolerance apart (`_residual2`'s units)."""
+        st = self.step(t, prev)  # flow t -> prev, per pixel of frame t
+        rng = np.random.default_rng(2)
+        bg = self._fit_plane(~(region | remnant), st, rng)
+        obj = self._fit_plane(remnant, st, rng)
+        if bg is None or obj is None or _plane_weight(bg[1]) <= 0 or _plane_weight(obj[1]) <= 0:
+            return True
+        ys, xs = np.nonzero(region & ~remnant)
+        if not len(xs):
+            return True
+        pts = np.stack([xs, ys], -1).reshape(-1, 1, 2).astype(np.float32)
+        gap = cv2.perspectiveTransform(pts, bg[0]) - cv2.perspectiveTransform(pts, obj[0])
+        fc = self.cfg.flow
+        u, v = st.push[ys, xs, 0], st.push[ys, xs, 1]
+        apart = (gap[:, 0, 0] ** 2 + gap[:, 0, 1] ** 2) > fc.abs_tol ** 2 + fc.rel_tol * (u * u + v * v)
+        if apart.mean() < 0.5:
+            return True
+        with_bg = self._residual2(st, bg[0], ys, xs) < self._residual2(st, obj[0], ys, xs)
+        return bool(with_bg[apart].mean() <= 0.5)
+
     def _residual2(self, st: Step, H: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
         """Squared residual of the measured flow at pixels (ys, xs) of src under the homography H, in units of
         the flow's own consistency tolerance (FlowConfig: abs_tol + rel_tol |flow|^2)."""
@@ -544,12 +571,14 @@ class Propagator:
         return Redetector(self.cache.work(k), soft_known[0], soft_known[1], self.cfg.redetect, self.cfg.appearance,
                           self.k)
 
-    def _recheck(self, watch: Redetector | None, soft: np.ndarray, t: int) -> np.ndarray:
-        """A chain's soft map at frame t after its collapsed objects were searched for (`redetect`)."""
+    def _recheck(self, watch: Redetector | None, soft: np.ndarray, t: int, prev: int) -> np.ndarray:
+        """A chain's soft map at frame t (reached from its neighbour prev) after its collapsed objects were searched
+        for (`redetect`)."""
         if watch is None:
             return soft
         n = len(watch.events)
-        soft = watch.check(soft, self.cache.work(t), self.cache.bins(t), t)
+        soft = watch.check(soft, self.cache.work(t), self.cache.bins(t), t,
+                           lambda region, remnant: self._moves_apart(t, prev, region, remnant))
         if len(watch.events) > n:
             self.redetections.extend(watch.events[n:])
             soft = self.refine(soft, self.cache.work(t))
@@ -571,7 +600,7 @@ class Propagator:
             soft, acc, trust, step_scale = self.advance(soft, acc, prev, t, model, self.cfg.motion_one_sided,
                                                         self.cfg.grow)
             scale = scale * step_scale
-            soft = self._recheck(watch, soft, t)
+            soft = self._recheck(watch, soft, t, prev)
             lab = argmax_labels(soft)
             dist = (None, i + 1) if nxt else (i + 1, None)
             # frame t's full-size labels are made on a thread of their own while this chain takes its next step
@@ -595,7 +624,7 @@ class Propagator:
         store = np.float32 if b - a <= 100 else np.float16  # long gaps: halve the memory of the stored chain
         for t in range(a + 1, b):
             soft, acc, trust, _ = self.advance(soft, acc, t - 1, t, model)
-            soft = self._recheck(watch, soft, t)
+            soft = self._recheck(watch, soft, t, t - 1)
             fwd[t] = (soft.astype(store), acc.astype(store), trust.astype(store))
         if b > a + 1 and (start_b[1] < 1).any():
             s, c, *_ = self.advance(soft, acc, b - 1, b, model)
@@ -614,7 +643,7 @@ class Propagator:
         span = b - a
         for t in range(b - 1, a, -1):
             soft, acc, trust, _ = self.advance(soft, acc, t + 1, t, model)
-            soft = self._recheck(watch, soft, t)
+            soft = self._recheck(watch, soft, t, t + 1)
             sf, cf, tf = (x.astype(np.float32, copy=False) for x in fwd.pop(t))
             lf, lb = argmax_channels(sf), argmax_channels(soft)
             if self.cfg.fusion:

@@ -194,8 +194,8 @@ def test_a_colour_find_that_moves_with_the_background_is_not_the_object():
     assert prop2._moves_apart(1, 0, patch2, disk2 & (xs.mean() > np.arange(w))[None, :])
 
 
-def test_a_refused_colour_find_leaves_the_map_and_counts():
-    """`Redetector.check` puts back no region that `moves_apart` refuses; it counts the refusal and keeps searching."""
+def test_a_refused_colour_find_leaves_the_map_and_is_recorded():
+    """`Redetector.check` puts back no region that `moves_apart` refuses; it records the refusal and keeps searching."""
     rng = np.random.default_rng(1)
     bg = background(rng)
     tex = cv2.GaussianBlur(rng.integers(0, 255, (H, W), dtype=np.uint8), (0, 0), 1.0)
@@ -210,6 +210,6 @@ def test_a_refused_colour_find_leaves_the_map_and_counts():
     remnant[38:41, 38:41] = (1.0, 0.0)  # a speck of the object is left where it was
     bins = quantize(later, AppearanceConfig().bins)
     out = det.check(remnant, later, bins, 5, lambda region, rest: False)
-    assert det.events == [] and det.refused == 1 and np.allclose(out, remnant)
+    assert det.events == [] and det.refusals == [(5, 0)] and np.allclose(out, remnant)
     out = det.check(remnant, later, bins, 6, lambda region, rest: True)
     assert len(det.events) == 1 and det.events[0].how == "colour"

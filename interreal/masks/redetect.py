@@ -107,7 +107,8 @@ class Redetector:
         self.key_pts: list[np.ndarray] = []
         self.key_desc: list[np.ndarray | None] = []
         self.events: list[Event] = []
-        self.refused = 0  # colour finds refused because they moved with the background (`check`'s moves_apart)
+        # (frame position, object) of each colour find refused because it moved with the background (`check`)
+        self.refusals: list[tuple[int, int]] = []
 
     def check(self, soft: np.ndarray, image: np.ndarray, bins: np.ndarray, pos: int,
               moves_apart: Callable[[np.ndarray, np.ndarray], bool] | None = None) -> np.ndarray:
@@ -140,7 +141,7 @@ class Redetector:
                 continue
             region, how = found
             if how == "colour" and area and moves_apart is not None and not moves_apart(region, mask):
-                self.refused += 1
+                self.refusals.append((pos, k))
                 continue
             soft = _reseed(soft, k, region)
             labels = argmax_labels(soft)

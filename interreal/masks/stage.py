@@ -229,6 +229,9 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
         # frames where a chain found a collapsed object again from its keyframe's appearance (`redetect`)
         rep.figures["redetected"] = {kf.names[k]: sorted({fids[e.pos] for e in prop.redetections if e.obj == k})
                                      for k in range(n_obj)}
+        # ... and where a region of its colours was not taken for it: it moved with the background, the object not
+        rep.figures["redetect_refused"] = {kf.names[k]: sorted({fids[p] for p, o in prop.refusals if o == k})
+                                           for k in range(n_obj)}
         rep.figures["keyframe_reach"] = [{"first": fids[a], "last": fids[b], "reach": round(r, 4)} for a, b, r in reach]
         rep.figures["max_keyframe_reach"] = round(max((r for _, _, r in reach), default=0.0), 4)
         for k, n in enumerate(kf.names):
@@ -245,6 +248,9 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
             if rep.figures["redetected"][n]:
                 why.append(f"its mask collapsed and the object was found again by its keyframe's appearance at frames "
                            f"{_ranges(rep.figures['redetected'][n])}")
+            if rep.figures["redetect_refused"][n]:
+                why.append(f"its mask collapsed and a region of its colours that moved with the background was not "
+                           f"taken for it at frames {_ranges(rep.figures['redetect_refused'][n])}")
             if far:
                 why.append("the view moves up to " + ", ".join(f"{100 * r:.0f} %" for _, _, r in far[:1])
                            + f" of its width from the nearest keyframe (propagation holds to about {100 * MAX_REACH:.0f} %)")

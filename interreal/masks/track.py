@@ -145,6 +145,7 @@ class Propagator:
         self._decoded: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # worker-only: the last decoded frame
         self.motion: dict[int, float] = {}  # pair t -> median flow t -> t+1, as a fraction of the work width
         self.redetections: list[Event] = []  # every chain's re-detections (positions, objects), for the report
+        self.refusals: list[tuple[int, int]] = []  # ... and its refused colour finds (position, object)
 
     # -- flow -------------------------------------------------------------------------------------------
     def pair(self, t: int) -> tuple[np.ndarray, np.ndarray]:
@@ -576,9 +577,10 @@ class Propagator:
         for (`redetect`)."""
         if watch is None:
             return soft
-        n = len(watch.events)
+        n, r = len(watch.events), len(watch.refusals)
         soft = watch.check(soft, self.cache.work(t), self.cache.bins(t), t,
                            lambda region, remnant: self._moves_apart(t, prev, region, remnant))
+        self.refusals.extend(watch.refusals[r:])
         if len(watch.events) > n:
             self.redetections.extend(watch.events[n:])
             soft = self.refine(soft, self.cache.work(t))

@@ -131,7 +131,7 @@ def test_davis_look_alike_on_the_background_is_not_taken_for_the_lost_object(tmp
     and counts as collapsed at frame 32; a patch of the dirt track has the muddy bike's colours. Taken for the bike
     (as it was before the motion check), the mask then stays on the track and frames 32-39 score J 0.13; refused
     because it pans with the background while what is left of the mask moves with the bike, they score 0.66. The
-    report names the refused frames and the warning says why."""
+    report names the refused frames, the warning says why, and the collapse is the first frame to annotate."""
     images, truths = davis_clip("motocross-jump", 40, size=(854, 480))
     rep = run(tmp_path / "moto", images, truths, [0], "bike")
     fig = rep["figures"]
@@ -142,6 +142,9 @@ def test_davis_look_alike_on_the_background_is_not_taken_for_the_lost_object(tmp
     j = [float((m & (t == 1)).sum() / max((m | (t == 1)).sum(), 1)) for m, t in zip(masks, truths[32:40])]
     assert np.mean(j) > 0.5, j
     assert any("moved with the background" in w["message"] for w in rep["warnings"]), rep["warnings"]
+    # where the mask collapsed (the chain's first frame under the collapse size, at or before the first refusal)
+    # is the first frame to annotate, as for a collapse that was found again
+    assert 28 <= int(fig["suggested_frames"][0]) <= min(refused), fig["suggested_frames"]
 
 
 def approaching_disk(n: int = 24, w: int = 480, h: int = 360, r0: int = 50) -> tuple[list, list]:

@@ -210,6 +210,7 @@ def test_a_refused_colour_find_leaves_the_map_and_is_recorded():
     remnant[38:41, 38:41] = (1.0, 0.0)  # a speck of the object is left where it was
     bins = quantize(later, AppearanceConfig().bins)
     out = det.check(remnant, later, bins, 5, lambda region, rest: False)
-    assert det.events == [] and det.refusals == [(5, 0)] and np.allclose(out, remnant)
+    assert det.events == [] and [(e.pos, e.obj, e.how) for e in det.refusals] == [(5, 0, "refused")]
+    assert np.allclose(out, remnant)
     out = det.check(remnant, later, bins, 6, lambda region, rest: True)
     assert len(det.events) == 1 and det.events[0].how == "colour"

@@ -74,7 +74,7 @@ class Event:
     pos: int
     obj: int
     area: float
-    how: str  # "features" or "colour"
+    how: str  # "features" or "colour" (or "refused": a colour find not taken, `Redetector.refusals`)
     since: int
 
 
@@ -107,8 +107,8 @@ class Redetector:
         self.key_pts: list[np.ndarray] = []
         self.key_desc: list[np.ndarray | None] = []
         self.events: list[Event] = []
-        # (frame position, object) of each colour find refused because it moved with the background (`check`)
-        self.refusals: list[tuple[int, int]] = []
+        # each colour find refused because it moved with the background (`check`; `how` "refused")
+        self.refusals: list[Event] = []
 
     def check(self, soft: np.ndarray, image: np.ndarray, bins: np.ndarray, pos: int,
               moves_apart: Callable[[np.ndarray, np.ndarray], bool] | None = None) -> np.ndarray:
@@ -141,7 +141,7 @@ class Redetector:
                 continue
             region, how = found
             if how == "colour" and area and moves_apart is not None and not moves_apart(region, mask):
-                self.refusals.append((pos, k))
+                self.refusals.append(Event(pos, k, float(region.mean()), "refused", int(self.collapsed_at[k])))
                 continue
             soft = _reseed(soft, k, region)
             labels = argmax_labels(soft)

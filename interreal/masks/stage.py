@@ -192,9 +192,9 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
                         vw.write(video[p])
         reach = keyframe_reach(motion, keys) if len(fids) > 1 else []
         far = sorted((x for x in reach if x[2] > MAX_REACH), key=lambda x: -x[2])
-        # where a mask collapsed (and was found again) the stage could not hold the object either: after the lost
-        # stretches, the first frames to annotate
-        collapsed = [[(e.since, e.pos) for e in prop.redetections if e.obj == k] for k in range(n_obj)]
+        # where a mask collapsed (and was found again, or a look-alike of it was refused) the stage could not hold the
+        # object either: after the lost stretches, the first frames to annotate
+        collapsed = [[(e.since, e.pos) for e in prop.redetections + prop.refusals if e.obj == k] for k in range(n_obj)]
         picks = next_keyframes(conf[:, :n_obj], is_key, suggest,
                                [lost + col for lost, col in zip(hl.stretches["lost"][:n_obj], collapsed)],
                                [reach_suggestion(motion, a, b, keys) for a, b, _ in far[:3]])
@@ -230,7 +230,7 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
         rep.figures["redetected"] = {kf.names[k]: sorted({fids[e.pos] for e in prop.redetections if e.obj == k})
                                      for k in range(n_obj)}
         # ... and where a region of its colours was not taken for it: it moved with the background, the object not
-        rep.figures["redetect_refused"] = {kf.names[k]: sorted({fids[p] for p, o in prop.refusals if o == k})
+        rep.figures["redetect_refused"] = {kf.names[k]: sorted({fids[e.pos] for e in prop.refusals if e.obj == k})
                                            for k in range(n_obj)}
         rep.figures["keyframe_reach"] = [{"first": fids[a], "last": fids[b], "reach": round(r, 4)} for a, b, r in reach]
         rep.figures["max_keyframe_reach"] = round(max((r for _, _, r in reach), default=0.0), 4)

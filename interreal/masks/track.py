@@ -145,7 +145,7 @@ class Propagator:
         self._decoded: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # worker-only: the last decoded frame
         self.motion: dict[int, float] = {}  # pair t -> median flow t -> t+1, as a fraction of the work width
         self.redetections: list[Event] = []  # every chain's re-detections (positions, objects), for the report
-        self.refusals: list[tuple[int, int]] = []  # ... and its refused colour finds (position, object)
+        self.refusals: list[Event] = []  # ... and its refused colour finds
 
     # -- flow -------------------------------------------------------------------------------------------
     def pair(self, t: int) -> tuple[np.ndarray, np.ndarray]:

@@ -26,6 +26,7 @@ from . import health as H
 from .keyframes import load_keyframes
 from ..video import VideoWriter
 from .preview import contact_sheet, second_line, thumb
+from .redetect import Event
 from .soft import argmax_labels, disk
 from .track import Propagator, TrackConfig
 from ..transients import (IGNORE, clear_transients, read_transient, split_labels, track_labels, transient_file,
@@ -227,11 +228,9 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
             "share": {fids[i]: round(float(v), 5) for i, v in enumerate(transient_share) if v > 0}}
         rep.figures["transients"]["occluded"] = {kf.names[k]: _stretch_text(fids, runs) for k, runs in occluded.items()}
         # frames where a chain found a collapsed object again from its keyframe's appearance (`redetect`)
-        rep.figures["redetected"] = {kf.names[k]: sorted({fids[e.pos] for e in prop.redetections if e.obj == k})
-                                     for k in range(n_obj)}
+        rep.figures["redetected"] = _event_frames(prop.redetections, fids, kf.names)
         # ... and where a region of its colours was not taken for it: it moved with the background, the object not
-        rep.figures["redetect_refused"] = {kf.names[k]: sorted({fids[e.pos] for e in prop.refusals if e.obj == k})
-                                           for k in range(n_obj)}
+        rep.figures["redetect_refused"] = _event_frames(prop.refusals, fids, kf.names)
         rep.figures["keyframe_reach"] = [{"first": fids[a], "last": fids[b], "reach": round(r, 4)} for a, b, r in reach]
         rep.figures["max_keyframe_reach"] = round(max((r for _, _, r in reach), default=0.0), 4)
         for k, n in enumerate(kf.names):
@@ -366,6 +365,11 @@ def _covered(obj: np.ndarray, stretch: list[tuple[np.ndarray, np.ndarray | None]
         least = min(least, (int(shown.sum()) + hidden) / area)
         hidden_min = min(hidden_min, hidden)
     return _Cover(least, area, hidden_min)
+
+
+def _event_frames(events: list[Event], fids: list[str], names: list[str]) -> dict[str, list[str]]:
+    """Per object name, the sorted frame ids of its re-detection events (`redetect.Event`)."""
+    return {n: sorted({fids[e.pos] for e in events if e.obj == k}) for k, n in enumerate(names)}
 
 
 def _stretch_text(fids: list[str], runs: list[tuple[int, int]]) -> str:

@@ -306,7 +306,7 @@ class Propagator:
         motions agree there, or either fit is untrusted).
 
         Each motion is one homography fit to the flow from t back to prev (as `_plane_fits`, on this frame's
-        pixels); a pixel of the region's new part counts for the one whose residual is smaller, where the two
+        pixels); a pixel of the region's new part counts for the one that predicts its flow better, where the two
         predict displacements more than one flow tolerance apart (`_residual2`'s units)."""
         st = self.step(t, prev)  # flow t -> prev, per pixel of frame t
         rng = np.random.default_rng(2)
@@ -317,25 +317,27 @@ class Propagator:
         ys, xs = np.nonzero(region & ~remnant)
         if not len(xs):
             return True
-        pts = np.stack([xs, ys], -1).reshape(-1, 1, 2).astype(np.float32)
-        gap = cv2.perspectiveTransform(pts, bg[0]) - cv2.perspectiveTransform(pts, obj[0])
-        fc = self.cfg.flow
         u, v = st.push[ys, xs, 0], st.push[ys, xs, 1]
-        apart = (gap[:, 0, 0] ** 2 + gap[:, 0, 1] ** 2) > fc.abs_tol ** 2 + fc.rel_tol * (u * u + v * v)
+        to_bg, to_obj = _project(bg[0], xs, ys), _project(obj[0], xs, ys)
+        apart = ((to_bg - to_obj) ** 2).sum(-1) > self._tolerance2(u, v)
         if apart.mean() < 0.5:
             return True
-        with_bg = self._residual2(st, bg[0], ys, xs) < self._residual2(st, obj[0], ys, xs)
+        seen = np.stack([xs + u, ys + v], -1)  # where the flow takes each pixel
+        with_bg = ((to_bg - seen) ** 2).sum(-1) < ((to_obj - seen) ** 2).sum(-1)
         return bool(with_bg[apart].mean() <= 0.5)
+
+    def _tolerance2(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Squared consistency tolerance of displacements (u, v): FlowConfig abs_tol + rel_tol |flow|^2."""
+        fc = self.cfg.flow
+        return fc.abs_tol ** 2 + fc.rel_tol * (u * u + v * v)
 
     def _residual2(self, st: Step, H: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
         """Squared residual of the measured flow at pixels (ys, xs) of src under the homography H, in units of
         the flow's own consistency tolerance (FlowConfig: abs_tol + rel_tol |flow|^2)."""
-        fc = self.cfg.flow
-        pts = np.stack([xs, ys], -1).reshape(-1, 1, 2).astype(np.float32)
         pu, pv = st.push[ys, xs, 0], st.push[ys, xs, 1]
-        pred = cv2.perspectiveTransform(pts, H).reshape(xs.shape + (2,))
+        pred = _project(H, xs, ys)
         e2 = (pred[..., 0] - xs - pu) ** 2 + (pred[..., 1] - ys - pv) ** 2
-        return e2 / (fc.abs_tol ** 2 + fc.rel_tol * (pu * pu + pv * pv))
+        return e2 / self._tolerance2(pu, pv)
 
     def _motion_evidence(self, soft: np.ndarray, st: Step, fits, motion: float) -> np.ndarray:
         """Take out of each object the pixels whose own flow moves with the background rather than the object.
@@ -752,6 +754,12 @@ def _resolved(res: FrameResult) -> FrameResult:
     """A FrameResult whose labels were a Future, with them in place (an error there is raised here)."""
     res.labels = res.labels.result()
     return res
+
+
+def _project(H: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """(..., 2) where the homography H takes the pixels (xs, ys) (arrays of one shape)."""
+    pts = np.stack([xs, ys], -1).reshape(-1, 1, 2).astype(np.float32)
+    return cv2.perspectiveTransform(pts, H).reshape(xs.shape + (2,))
 
 
 def _plane_weight(inliers: float) -> float:

@@ -12,7 +12,8 @@ to exit. Settings:
 Per run: j_mean (Jaccard, mean over the frames that were not given, per object, then over objects), j_worst_object,
 s_per_frame and fps of the whole command, warned (a `masks-unreliable` warning in DS/reports/masks.json),
 lost_warned (an `object-lost` warning), predicted_j (the stage's own estimate), redetected (frames where the stage
-found a collapsed object again from its keyframe's appearance).
+found a collapsed object again from its keyframe's appearance), fine_share (the stage's share of the keyframe masks
+in parts too fine to propagate) and j_ceiling_fine (the J left if exactly those parts of the truth are lost).
 Warning quality over the DAVIS runs of both protocols: precision / recall of "warned" for "J < 0.7", with the
 shipped weights (in-sample) and leave-one-sequence-out (the health model refit without the held-out sequence).
 `--fit` prints weights refit on all sequences (to paste into interreal/masks/health.py).
@@ -146,6 +147,7 @@ def run_one(data: str, ds: Path, gts, names, keys: list[int], setting: str, vari
     causes = {w.get("cause") for w in rep.get("warnings", [])}
     worst = {n: [(int(i), round(float(j[i, k]), 3)) for i in np.argsort(j[:, k]) if free[i]][:5]
              for k, n in enumerate(names)}
+    fine = fig["fine_parts"]
     return {"data": data, "setting": setting, "variant": variant, "keyframes": len(keys),
             "keyframes_per_100": round(100 * len(keys) / len(gts), 2), "frames": len(gts), "objects": len(names),
             "j_mean": round(float(per_obj.mean()), 4), "j_worst_object": round(float(per_obj.min()), 4),
@@ -157,11 +159,23 @@ def run_one(data: str, ds: Path, gts, names, keys: list[int], setting: str, vari
             # frames where the stage found a collapsed object again (interreal/masks/redetect.py)
             "redetected": {n: (fig.get("redetected") or {}).get(n, []) for n in names},
             "suggested": fig["suggested_frames"],
+            # the stage's share of each keyframe mask too fine to propagate, and the J the truth's own fine parts
+            # leave at most (every propagated frame's truth without them, the rest perfect)
+            "fine_share": round(max(fine["share"].values()), 4),
+            "j_ceiling_fine": round(fine_ceiling(gts, free, len(names), (fine["width_px"] - 1) // 2), 4),
             "per_object": "; ".join(f"{n}={v:.3f}" for n, v in zip(names, per_obj)),
             "worst_frames": worst,
             # per frame, for the leave-one-sequence-out check of the warning
             "_frames": {"j": j.round(4).tolist(), "key": (~free).tolist(),
                         "cues": {n: fig["cues"][n] for n in names}}}
+
+
+def fine_ceiling(gts: list[np.ndarray], free: np.ndarray, n_obj: int, radius: int) -> float:
+    """Mean J over the propagated frames (per object, then over objects) of masks that are perfect except for the
+    parts of the truth narrower than 2 radius + 1 px (`health.fine_share`), which propagation loses."""
+    per_obj = [np.mean([1.0 - H.fine_share(gts[i] == k + 1, radius) for i in np.nonzero(free)[0]]) if free.any() else 1.0
+               for k in range(n_obj)]
+    return float(np.mean(per_obj))
 
 
 def effort_curve(seq: str, ds: Path, gts, names, work: Path, first: dict, every10: dict | None) -> list[dict]:
@@ -290,8 +304,8 @@ def main() -> int:
                   label=lambda r: r["label"],
                   xlabel="seconds per frame, whole `interreal masks` command",
                   ylabel="J (mean over sequences)", title="interreal masks: accuracy vs time, every setting")
-    print_table(runs, ["data", "setting", "variant", "keyframes", "j_mean", "predicted_j", "warned", "lost_warned",
-                       "fps", "s_per_frame", "per_object"], title="masks")
+    print_table(runs, ["data", "setting", "variant", "keyframes", "j_mean", "j_ceiling_fine", "predicted_j", "warned",
+                       "lost_warned", "fps", "s_per_frame", "per_object"], title="masks")
     print(json.dumps(summary, indent=1))
     return 0
 
@@ -327,6 +341,7 @@ def summarise(runs: list[dict], seqs: list[str], curves: dict[str, list[dict]]) 
         out[s] = {"j_mean": round(float(np.mean([r["j_mean"] for r in rs])), 4),
                   "keyframes_per_100": round(float(np.mean([r["keyframes_per_100"] for r in rs])), 2),
                   "fps_whole_command": round(sum(r["frames"] for r in rs) / sum(r["wall_s"] for r in rs), 2),
+                  "j_ceiling_fine": round(float(np.mean([r["j_ceiling_fine"] for r in rs])), 4),
                   "sequences": len(rs)}
     need = {}
     for seq in seqs:

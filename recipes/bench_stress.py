@@ -90,7 +90,7 @@ def silent_failures(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 # warnings that declare a stage's output degraded (advice such as "add a keyframe near frame 12" does not count)
 DEGRADED_CAUSES: dict[str, set[str]] = {
     "frames": {"texture/exposure"},
-    "masks": {"masks-unreliable"},
+    "masks": {"masks-unreliable", "masks-fine-parts"},
     "poses": {"low-registration", "texture", "blur", "motion", "exposure", "split-model"},
     "labels": {"stale-label"},
     "train": {"few-labels", "low-fit", "states-unreliable"},

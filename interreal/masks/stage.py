@@ -119,6 +119,8 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
         ref = {p: np.array([(m == k + 1).mean() for k in range(n_track)]) for p, m in anchors.items()}
         key_refs = {p: H.key_reference(cv2.resize(load(p), prop.wsize, interpolation=cv2.INTER_AREA),
                                        _work_labels(m, prop.wsize), n_track) for p, m in sorted(anchors.items())}
+        fine_r = H.fine_radius(size[0], prop.wsize[0])
+        fine = _fine_shares(anchors, n_obj, fine_r)
         cues = _Cues(len(fids), n_track)
         clear_transients(ds)  # this run's ignore class (or none) replaces any earlier transient layer
         transient_share = np.zeros(len(fids))
@@ -231,6 +233,9 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
         rep.figures["redetected"] = _event_frames(prop.redetections, fids, kf.names)
         # ... and where a region of its colours was not taken for it: it moved with the background, the object not
         rep.figures["redetect_refused"] = _event_frames(prop.refusals, fids, kf.names)
+        # per object: the share of its keyframe masks in parts too fine for propagation to carry (`health.fine_share`)
+        rep.figures["fine_parts"] = {"width_px": 2 * fine_r + 1,
+                                     "share": {n: round(float(fine[k]), 4) for k, n in enumerate(kf.names)}}
         rep.figures["keyframe_reach"] = [{"first": fids[a], "last": fids[b], "reach": round(r, 4)} for a, b, r in reach]
         rep.figures["max_keyframe_reach"] = round(max((r for _, _, r in reach), default=0.0), 4)
         for k, n in enumerate(kf.names):
@@ -240,6 +245,13 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
                 rep.warn(f"'{n}': object lost at frames {where}: its mask vanished or collapsed where the keyframes "
                          f"show it; add a keyframe at {', '.join(fids[a] for a, _ in lost[:5])}",
                          cause="object-lost", object=n, frames=[fids[i] for a, b in lost for i in range(a, b + 1)])
+            fine_note = (f"{100 * fine[k]:.0f} % of its keyframe masks are parts narrower than {2 * fine_r + 1} px "
+                         f"(lines, cables, thin rods), which propagation leaves out between keyframes"
+                         if fine[k] >= H.FINE_WARN else "")
+            if fine_note:
+                rep.warn(f"'{n}': {fine_note}: its masks there can reach J {1 - fine[k]:.2f} at most. Leave such parts "
+                         f"out of its keyframes if the object need not include them; a finer --work-size keeps a "
+                         f"little more of them", cause="masks-fine-parts", object=n)
             if mean_pred[k] >= H.WARN_J:
                 continue
             why = [f"{st} at frames {_stretch_text(fids, hl.stretches[st][k])}"
@@ -250,6 +262,8 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
             if rep.figures["redetect_refused"][n]:
                 why.append(f"its mask collapsed and a region of its colours that moved with the background was not "
                            f"taken for it at frames {_ranges(rep.figures['redetect_refused'][n])}")
+            if fine_note:
+                why.append(fine_note)
             if far:
                 why.append("the view moves up to " + ", ".join(f"{100 * r:.0f} %" for _, _, r in far[:1])
                            + f" of its width from the nearest keyframe (propagation holds to about {100 * MAX_REACH:.0f} %)")
@@ -295,6 +309,19 @@ class _Cues:
                 f, b = res.fwd == k + 1, res.bwd == k + 1
                 u = int((f | b).sum())
                 self.agree[pos, k] = (f & b).sum() / u if u else 1.0
+
+
+def _fine_shares(anchors: dict[int, np.ndarray], n_obj: int, radius: int) -> np.ndarray:
+    """(K,) share of each object's pixels over all its keyframes in parts too fine to propagate (`health.fine_share`)."""
+    fine, total = np.zeros(n_obj), np.zeros(n_obj)
+    for labels in anchors.values():
+        for k in range(n_obj):
+            m = labels == k + 1
+            n = int(m.sum())
+            if n:
+                fine[k] += H.fine_share(m, radius) * n
+                total[k] += n
+    return fine / np.maximum(total, 1)
 
 
 def _occluded_by_transients(ds: Path, fids: list[str], hl: H.Health, n_obj: int,

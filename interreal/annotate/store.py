@@ -233,7 +233,7 @@ class DatasetStore:
                 if not reason:
                     reason = _low_confidence(confidence, fid)
                 out.append({"fid": fid, "reason": reason})
-        return self._label_flags() + out
+        return self._label_flags() + _fine_part_flags(rep, figures) + out
 
     def _label_flags(self) -> list[dict[str, Any]]:
         """Labels the motions report names as likely mistakes (the geometry measured another state there)."""
@@ -493,6 +493,15 @@ class DatasetStore:
             atomic.write_yaml(path, want)
         if not (self.ds / MAPPING_FILE).exists():
             atomic.write_yaml(self.ds / MAPPING_FILE, want)
+
+
+def _fine_part_flags(rep: dict[str, Any], figures: dict[str, Any]) -> list[dict[str, Any]]:
+    """The masks stage's `masks-fine-parts` warnings, on the object's first keyframe: where the user paints the lines
+    and cables that propagation leaves out, and can decide to leave them out of the object."""
+    keys = figures.get("keyframes") if isinstance(figures.get("keyframes"), list) else []
+    warnings = rep.get("warnings") if isinstance(rep.get("warnings"), list) else []
+    return [{"fid": str(keys[0]), "reason": str(w.get("message", ""))} for w in warnings
+            if keys and isinstance(w, dict) and w.get("cause") == "masks-fine-parts"]
 
 
 def _low_confidence(confidence: dict[str, Any], fid: str) -> str:

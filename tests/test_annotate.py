@@ -347,14 +347,19 @@ def test_suggestions_from_the_masks_report_figures(client, ds):
         {"fid": "00006", "reason": "confidence 0.41 (door)"}, {"fid": "00003", "reason": "confidence 0.55 (drawer)"}]
 
 
-def test_a_fine_parts_warning_is_shown_on_the_first_keyframe(client, ds):
+def test_a_fine_parts_warning_is_shown_on_the_keyframe_with_most_of_them(client, ds):
     msg = "'door': 23 % of its keyframe masks are parts narrower than 5 px (lines, cables, thin rods) ..."
-    write_json(ds / "reports" / "masks.json", {"stage": "masks", "status": "ok", "warnings": [
+    report = {"stage": "masks", "status": "ok", "warnings": [
         {"cause": "masks-unreliable", "message": "'door': masks are unreliable", "object": "door"},
         {"cause": "masks-fine-parts", "message": msg, "object": "door"}],
-        "figures": {"keyframes": ["00003", "00006"], "suggested_frames": ["00000"]}})
-    assert client.get("/api/state").json()["suggested"] == [{"fid": "00003", "reason": msg},
+        "figures": {"keyframes": ["00003", "00006"], "suggested_frames": ["00000"],
+                    "fine_parts": {"width_px": 5, "share": {"door": 0.23}, "keyframe": {"door": "00006"}}}}
+    write_json(ds / "reports" / "masks.json", report)
+    assert client.get("/api/state").json()["suggested"] == [{"fid": "00006", "reason": msg},
                                                            {"fid": "00000", "reason": ""}]
+    del report["figures"]["fine_parts"]  # a report without the keyframe: the first one
+    write_json(ds / "reports" / "masks.json", report)
+    assert client.get("/api/state").json()["suggested"][0] == {"fid": "00003", "reason": msg}
 
 
 def test_propagation_failure_is_reported(client, ds, monkeypatch):

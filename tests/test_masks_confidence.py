@@ -115,6 +115,7 @@ def test_an_object_made_of_lines_is_warned_about_them(tmp_path):
     rep = run(tmp_path, images, truths, [0, 9], "kite-surfer")
     fine = rep["figures"]["fine_parts"]
     assert fine["width_px"] == 3 and 0.15 < fine["share"]["kite-surfer"] < 0.25, fine  # 0.19 measured
+    assert fine["keyframe"]["kite-surfer"] in ("00000", "00009")
     warn = [w for w in rep["warnings"] if w["cause"] == "masks-fine-parts"]
     assert len(warn) == 1 and "narrower than 3 px" in warn[0]["message"], rep["warnings"]
     cap = 1 - fine["share"]["kite-surfer"]

@@ -496,12 +496,19 @@ class DatasetStore:
 
 
 def _fine_part_flags(rep: dict[str, Any], figures: dict[str, Any]) -> list[dict[str, Any]]:
-    """The masks stage's `masks-fine-parts` warnings, on the object's first keyframe: where the user paints the lines
-    and cables that propagation leaves out, and can decide to leave them out of the object."""
+    """The masks stage's `masks-fine-parts` warnings, each on the keyframe holding most of the object's fine parts
+    (the first keyframe in an older report): where the user painted the lines and cables that propagation leaves
+    out, and can leave them out of the object."""
+    fine = figures.get("fine_parts") if isinstance(figures.get("fine_parts"), dict) else {}
+    where = fine.get("keyframe") if isinstance(fine.get("keyframe"), dict) else {}
     keys = figures.get("keyframes") if isinstance(figures.get("keyframes"), list) else []
-    warnings = rep.get("warnings") if isinstance(rep.get("warnings"), list) else []
-    return [{"fid": str(keys[0]), "reason": str(w.get("message", ""))} for w in warnings
-            if keys and isinstance(w, dict) and w.get("cause") == "masks-fine-parts"]
+    out = []
+    for w in rep.get("warnings") if isinstance(rep.get("warnings"), list) else []:
+        if isinstance(w, dict) and w.get("cause") == "masks-fine-parts":
+            fid = where.get(w.get("object"), keys[0] if keys else None)
+            if fid is not None:
+                out.append({"fid": str(fid), "reason": str(w.get("message", ""))})
+    return out
 
 
 def _low_confidence(confidence: dict[str, Any], fid: str) -> str:

@@ -121,7 +121,7 @@ def fine_share(mask: np.ndarray, radius: int) -> float:
     Why: flow cannot follow such a part (a few pixels of it against a textured background move with the
     background) and the work grid and its guided filter blur it below one half, so the masks between keyframes
     leave it out. DAVIS, keyframe every 10 frames, radius 2 at 854 px: 2 % (paragliding-launch's lines) and 5 %
-    (kite-surf's) of those pixels kept against 93 % and 89 % of the rest (26-44 % on three sequences where they
+    (kite-surf's) of those pixels kept against 94 % and 89 % of the rest (26-44 % on three sequences where they
     are 1-2 % of the object). J between keyframes is then at most one minus this share.
     """
     m = mask.astype(np.uint8)

@@ -120,7 +120,7 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
         key_refs = {p: H.key_reference(cv2.resize(load(p), prop.wsize, interpolation=cv2.INTER_AREA),
                                        _work_labels(m, prop.wsize), n_track) for p, m in sorted(anchors.items())}
         fine_r = H.fine_radius(size[0], prop.wsize[0])
-        fine = _fine_shares(anchors, n_obj, fine_r)
+        fine, fine_key = _fine_shares(anchors, n_obj, fine_r)
         cues = _Cues(len(fids), n_track)
         clear_transients(ds)  # this run's ignore class (or none) replaces any earlier transient layer
         transient_share = np.zeros(len(fids))
@@ -234,8 +234,11 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
         # ... and where a region of its colours was not taken for it: it moved with the background, the object not
         rep.figures["redetect_refused"] = _event_frames(prop.refusals, fids, kf.names)
         # per object: the share of its keyframe masks in parts too fine for propagation to carry (`health.fine_share`)
+        # and the keyframe with most of them (where the annotate app shows the warning)
         rep.figures["fine_parts"] = {"width_px": 2 * fine_r + 1,
-                                     "share": {n: round(float(fine[k]), 4) for k, n in enumerate(kf.names)}}
+                                     "share": {n: round(float(fine[k]), 4) for k, n in enumerate(kf.names)},
+                                     "keyframe": {n: fids[fine_key[k]] for k, n in enumerate(kf.names)
+                                                  if fine_key[k] is not None}}
         rep.figures["keyframe_reach"] = [{"first": fids[a], "last": fids[b], "reach": round(r, 4)} for a, b, r in reach]
         rep.figures["max_keyframe_reach"] = round(max((r for _, _, r in reach), default=0.0), 4)
         for k, n in enumerate(kf.names):
@@ -311,17 +314,22 @@ class _Cues:
                 self.agree[pos, k] = (f & b).sum() / u if u else 1.0
 
 
-def _fine_shares(anchors: dict[int, np.ndarray], n_obj: int, radius: int) -> np.ndarray:
-    """(K,) share of each object's pixels over all its keyframes in parts too fine to propagate (`health.fine_share`)."""
+def _fine_shares(anchors: dict[int, np.ndarray], n_obj: int, radius: int) -> tuple[np.ndarray, list[int | None]]:
+    """(K,) share of each object's pixels over all its keyframes in parts too fine to propagate (`health.fine_share`),
+    and the keyframe holding most of each object's such pixels (None where it has none)."""
     fine, total = np.zeros(n_obj), np.zeros(n_obj)
-    for labels in anchors.values():
+    most: list[tuple[float, int | None]] = [(0.0, None)] * n_obj
+    for pos, labels in sorted(anchors.items()):
         for k in range(n_obj):
             m = labels == k + 1
             n = int(m.sum())
             if n:
-                fine[k] += H.fine_share(m, radius) * n
+                px = H.fine_share(m, radius) * n
+                fine[k] += px
                 total[k] += n
-    return fine / np.maximum(total, 1)
+                if px > most[k][0]:
+                    most[k] = (px, pos)
+    return fine / np.maximum(total, 1), [pos for _, pos in most]
 
 
 def _occluded_by_transients(ds: Path, fids: list[str], hl: H.Health, n_obj: int,

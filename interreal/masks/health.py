@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from .appearance import AppearanceConfig, ColourModel, quantize
+from .soft import disk
 
 MODEL = ("area", "trust", "thin", "edges", "agree", "two_sided")  # the predicted J's inputs, in order
 FEATURES = MODEL + ("appearance", "reach", "jump")
@@ -128,7 +129,7 @@ def fine_share(mask: np.ndarray, radius: int) -> float:
     n = int(m.sum())
     if n == 0:
         return 0.0
-    opened = cv2.morphologyEx(m, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1,) * 2))
+    opened = cv2.morphologyEx(m, cv2.MORPH_OPEN, disk(radius))
     return float(n - int(opened.sum())) / n
 
 

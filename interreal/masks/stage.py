@@ -379,25 +379,26 @@ class _Cover(NamedTuple):
         return self.area * max(1.0 - self.share, 0.0)
 
 
-def _stretch_masks(ds: Path, fids: list[str], frames: range, k: int) -> list[tuple[np.ndarray, np.ndarray | None]]:
-    """Object k's mask and the transient layer (None where there is none) on each frame of a stretch."""
+def _stretch_masks(ds: Path, fids: list[str], frames: range, k: int) -> list[tuple[int, np.ndarray | None]]:
+    """Object k's mask area and the transient layer (None where there is none) on each frame of a stretch."""
     out = []
     for i in frames:
         mask = np.load(mask_file(ds, fids[i]))[..., k]
-        out.append((mask, read_transient(ds, fids[i], mask.shape)))
+        out.append((int(mask.sum()), read_transient(ds, fids[i], mask.shape)))
     return out
 
 
-def _covered(obj: np.ndarray, stretch: list[tuple[np.ndarray, np.ndarray | None]]) -> _Cover:
-    """How much of an object's mask `obj` on a reference frame its mask on each frame of the stretch (`_stretch_masks`)
-    or the transient layer there accounts for (the pixels still shown, plus those a person / hand now hides)."""
+def _covered(obj: np.ndarray, stretch: list[tuple[int, np.ndarray | None]]) -> _Cover:
+    """How much of an object's mask `obj` on a reference frame its mask on each frame of the stretch (`_stretch_masks`:
+    its area there) or the transient layer there accounts for (the pixels still shown, plus those a person / hand now
+    hides)."""
     area = int(obj.sum())
     if not area:
         return _Cover(0.0, 0, 0)
     least, hidden_min = 1.0, area
     for shown, tr in stretch:
         hidden = int((tr & obj).sum()) if tr is not None else 0
-        least = min(least, (int(shown.sum()) + hidden) / area)
+        least = min(least, (shown + hidden) / area)
         hidden_min = min(hidden_min, hidden)
     return _Cover(least, area, hidden_min)
 

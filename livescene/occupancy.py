@@ -302,6 +302,7 @@ def build_cost(model: LiveSceneModel, box: tuple[torch.Tensor, torch.Tensor], sh
     work is a field read per corner and state): a time-limited training reserves it before its last step."""
     lo, hi = box[0].float(), box[1].float()
     full = default_resolution(model)
+    build_grid(model, box, resolution=MIN_RES)  # warm: a cold first read (CUDA's kernels loading) would be scaled up
     small = build_grid(model, box, resolution=max(MIN_RES, full // shrink))
     cells = [math.prod(grid_shape(lo, hi, res)) for res in (full, max(MIN_RES, full // shrink))]
     return small.info["build_s"] * cells[0] / cells[1]

@@ -80,10 +80,13 @@ def ddp_runs(tmp_path_factory):
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        start = Trainer(ds, root / "start", _cfg(B, STEPS), show_progress=False).model.state_dict()  # same seed
+        start = Trainer(ds, root / "start", _cfg(B, STEPS), device="cpu",  # same seed
+                        show_progress=False).model.state_dict()
         start = {k: v.clone() for k, v in start.items() if v.is_floating_point()}
-        single = _steps(Trainer(ds, root / "single", _cfg(WORLD * B, STEPS), show_progress=False), STEPS)
-        method = "spawn" if torch.cuda.is_initialized() else "fork"
+        single = _steps(Trainer(ds, root / "single", _cfg(WORLD * B, STEPS), device="cpu", show_progress=False),
+                        STEPS)  # on the ranks' device: a CUDA machine would otherwise pick its GPU
+        # fork inherits the imports, but not where CUDA is: autograd then keeps device threads a fork cannot copy
+        method = "spawn" if torch.cuda.is_available() else "fork"
         mp.start_processes(_worker, args=(str(ds), str(root), _free_port()), nprocs=WORLD, join=True,
                            start_method=method)
     finally:

@@ -56,13 +56,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    check_extra("livescene ground")
     query = check_query(args.query)
     if not 0.0 < args.mask_threshold < 1.0:
         raise InputError(f"--mask-threshold {args.mask_threshold} must be in (0, 1)")
     if not args.run.is_dir():
         raise InputError(f"{args.run} is not a run folder: train one with `livescene train DS --out RUN`")
     require_valid_run_dataset(args.run, "ground")  # an invalid dataset is refused, as by train/render/eval
+    check_extra("livescene ground")  # the user's own input first, then what to install; still before loading a run
     try:
         cmd: Command | None = parse_command(query)
     except InputError:

@@ -377,6 +377,40 @@ def test_fusion_colour_vote_settles_disagreeing_chains():
     assert min(with_vote.values()) > 0.9, with_vote
 
 
+def test_the_vote_reads_only_the_box_around_the_disagreement_and_matches_the_whole_frame():
+    """`_vote` works on the box around the pixels the chains disagree on. The reference: the same frame with a
+    lone disagreeing pixel in two opposite corners (too small to vote), so that its box is the whole frame; the
+    same disagreement inside a larger frame, or at its corner, must get the same weights, and nothing else may
+    change."""
+    from interreal.masks.track import Propagator, TrackConfig
+
+    rng = np.random.default_rng(3)
+    h, w, k = 40, 50, 2
+    lf = np.full((h, w), k, np.uint8)  # both chains: background ...
+    lb = lf.copy()
+    cv2.circle(lf, (20, 18), 9, 0, -1)  # ... but for a disk the forward chain calls object 0
+    cv2.rectangle(lb, (30, 5), (45, 30), 1, -1)  # and a box the backward one calls object 1
+    bins = rng.integers(0, 16, (h, w))
+    table = (np.array([3.0, 3.0, 0.0]) + rng.normal(0, 0.3, (16, k + 1))).astype(np.float32)  # objects' colours
+    wf, wb = rng.random((h, w)).astype(np.float32), rng.random((h, w)).astype(np.float32)
+    p = Propagator(lambda i: np.zeros((h, w, 3), np.uint8), 2, (w, h), k, TrackConfig(vote=8.0, vote_min_px=10))
+    framed = lf.copy()
+    framed[0, 0] = framed[-1, -1] = 0
+    want = p._vote(framed, lb, wf, wb, bins, table)
+    assert not np.allclose(want[0], wf) and not np.allclose(want[1], wb)  # the vote changed both chains' weights
+    for y, x in ((0, 0), (37, 61)):  # at the big frame's corner, then inside it
+        big = [np.full((120, 140), fill, a.dtype) for a, fill in ((lf, k), (lb, k), (bins, 0))]
+        bw = [np.full((120, 140), 0.5, np.float32) for _ in range(2)]
+        for a, b in zip(big + bw, (lf, lb, bins, wf, wb)):
+            a[y: y + h, x: x + w] = b
+        got = p._vote(big[0], big[1], bw[0], bw[1], big[2], table)
+        for g, ref, b in zip(got, want, bw):
+            np.testing.assert_allclose(g[y: y + h, x: x + w], ref, rtol=1e-6)
+            outside = np.ones(g.shape, bool)
+            outside[y: y + h, x: x + w] = False
+            assert (g[outside] == b[outside]).all()
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # speed paths must not change the result
 # ---------------------------------------------------------------------------------------------------------------

@@ -681,9 +681,15 @@ class Propagator:
         door's face). Each connected region of disagreement votes once, with the mean colour log-likelihood
         of each chain's labels there; thin boundary slivers (removed by an opening) and close calls abstain.
         """
-        dis = lf != lb
-        if not dis.any():
+        dis_full = lf != lb
+        rows, cols = np.flatnonzero(dis_full.any(1)), np.flatnonzero(dis_full.any(0))
+        if not len(rows):
             return wf, wb
+        # only the box around the disagreement (a small part of the frame), with a margin past the 5x5 kernel's
+        # reach: the opening, the components and the growing back are the same there as on the whole frame
+        pad = 4
+        win = (slice(max(rows[0] - pad, 0), rows[-1] + pad + 1), slice(max(cols[0] - pad, 0), cols[-1] + pad + 1))
+        lf, lb, bins, dis = lf[win], lb[win], bins[win], dis_full[win]
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
         q = bins[dis]
         diff = np.zeros(lf.shape, np.float32)
@@ -706,8 +712,9 @@ class Propagator:
             grown = cv2.dilate(comp.astype(np.float32), kernel).astype(np.int32)
             m = np.where(sel > 0, margin[grown], m).astype(np.float32)
         if m.any():
-            wf = wf * np.exp(-self.cfg.vote * np.clip(-m, 0.0, None))
-            wb = wb * np.exp(-self.cfg.vote * np.clip(m, 0.0, None))
+            wf, wb = wf.copy(), wb.copy()
+            wf[win] *= np.exp(-self.cfg.vote * np.clip(-m, 0.0, None))
+            wb[win] *= np.exp(-self.cfg.vote * np.clip(m, 0.0, None))
         return wf, wb
 
     def _keyframe(self, k: int, index_map: np.ndarray, arr: list) -> FrameResult:

@@ -11,7 +11,6 @@ gpu preset at 19 steps/s with the GPU busy 40 % of the time, 1676 kernels a step
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -22,6 +21,9 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchlib import environment  # noqa: E402
+from interreal.atomic import write_json  # noqa: E402
 from livescene.config import load_preset  # noqa: E402
 from livescene.device import select_device  # noqa: E402
 from livescene.render import render_view  # noqa: E402
@@ -95,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     device = select_device(args.device)
     preset = args.preset if args.preset != "auto" else ("gpu" if device.type == "cuda" else "cpu")
     out: dict[str, Any] = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
-                           "torch": torch.__version__,
+                           "torch": torch.__version__, "environment": environment(),
                            "train": profile_training(args.dataset, preset, args.steps, device, args.rows)}
     if args.run is not None:
         out["render"] = profile_render(args.run, device, args.rows)
@@ -109,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
             for row in rec["top"]:
                 print(f"  {row['self_s']:8.4f} s  {row['calls']:6d}  {row['op']}")
     if args.out is not None:
-        args.out.write_text(json.dumps(out, indent=2))
+        write_json(args.out, out)  # atomic, as every file the project writes
     return 0
 
 

@@ -163,17 +163,19 @@ def test_davis_look_alike_on_the_background_is_not_taken_for_the_lost_object(tmp
     """motocross-jump, first frame only, full size: the bike flies away from the camera, its mask shrinks with it
     and counts as collapsed at frame 32; a patch of the dirt track has the muddy bike's colours. Taken for the bike
     (as it was before the motion check), the mask then stays on the track and frames 32-39 score J 0.13; refused
-    because it pans with the background while what is left of the mask moves with the bike, they score 0.66. The
-    report names the refused frames, the warning says why, and the collapse is the first frame to annotate."""
+    because it pans with the background while what is left of the mask moves with the bike, they score 0.66. With
+    the keyframe's local colours in `_grow` (`TrackConfig.local_colour`) the mask holds more of the bike and
+    collapses only at frame 38 (frames 32-39: J 0.75), where the look-alike is refused again. The report names the
+    refused frames, the warning says why, and the collapse is the first frame to annotate."""
     images, truths = davis_clip("motocross-jump", 40, size=(854, 480))
     rep = run(tmp_path / "moto", images, truths, [0], "bike")
     fig = rep["figures"]
     refused = [int(f) for f in fig["redetect_refused"]["bike"]]
-    assert refused and 30 <= min(refused) <= 34, refused
-    assert not any(30 <= int(f) <= 34 for f in fig["redetected"]["bike"]), fig["redetected"]
+    assert refused and 30 <= min(refused) <= 39, refused
+    assert not any(30 <= int(f) <= 39 for f in fig["redetected"]["bike"]), fig["redetected"]
     masks = [np.load(tmp_path / "moto" / "ds" / "masks" / f"{fid_of_index(i)}.npy")[..., 0] for i in range(32, 40)]
     j = [float((m & (t == 1)).sum() / max((m | (t == 1)).sum(), 1)) for m, t in zip(masks, truths[32:40])]
-    assert np.mean(j) > 0.5, j
+    assert np.mean(j) > 0.6, j
     assert any("moved with the background" in w["message"] for w in rep["warnings"]), rep["warnings"]
     # where the mask collapsed (the chain's first frame under the collapse size, at or before the first refusal)
     # is the first frame to annotate, as for a collapse that was found again

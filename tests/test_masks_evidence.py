@@ -224,3 +224,83 @@ def test_cut_leaves_other_objects_alone(monkeypatch):
     assert np.allclose(out[..., 1][soft[..., 0] > 0.5], soft[..., 1][soft[..., 0] > 0.5])   # 1 untouched on 0
     assert np.allclose(out[..., 0][soft[..., 1] > 0.5], soft[..., 0][soft[..., 1] > 0.5])   # 0 untouched on 1
     assert (out[..., 0][soft[..., 0] > 0.5] < 0.5).all() and (out[..., 1][soft[..., 1] > 0.5] < 0.5).all()
+
+
+def _car_keyframe(w: int = 160, h: int = 120) -> tuple[np.ndarray, np.ndarray]:
+    """A red box (rows 40-80, cols 60-100) with a dark window along its top (rows 40-52), on green, and a dark
+    shadow strip right under it (rows 80-84, background): dark is the object's colour over the whole frame (480
+    window pixels against 160 of shadow), but not at its bottom."""
+    img = np.full((h, w, 3), (90, 120, 90), np.uint8)
+    img[40:80, 60:100] = (220, 40, 40)
+    img[40:52, 60:100] = (50, 50, 50)
+    img[80:84, 60:100] = (50, 50, 50)
+    lab = np.zeros((h, w), np.uint8)
+    lab[40:80, 60:100] = 1
+    return img, lab
+
+
+def test_local_colour_tells_apart_what_the_keyframe_histogram_mixes():
+    """Dark pixels are the object's near the box's dark top and the background's near its bottom (the shadow), and
+    nothing is said where one label is absent from the window; the global histogram calls dark the object's
+    everywhere."""
+    from interreal.masks.appearance import LocalColour, lab_of
+
+    img, lab = _car_keyframe()
+    soft, known = anchor_soft(lab, 1, (160, 120))
+    local = LocalColour.fit(img, soft, known)
+    dark = lab_of(np.full((1, 1, 3), 50, np.uint8)).reshape(1, 3)
+    top, bottom, far = (local.log_ratio(0, dark, np.array([y]), np.array([80]))[0] for y in (38, 82, 10))
+    assert top > 2.0 and bottom < -2.0, (top, bottom)
+    assert np.isnan(far)                                    # only background within the window: no local evidence
+    model = ColourModel.fit(img, soft, known, AppearanceConfig())
+    q = quantize(np.full((1, 1, 3), 50, np.uint8), model.cfg.bins)[0, 0]
+    assert model.hist[0, q] > 2.0 * model.hist[-1, q]       # globally, dark is the object's
+
+
+def test_local_colour_maps_move_with_the_object():
+    """A homography that shifts by (+7, +3) px moves every map by it; without one, the chain's own warp is used."""
+    from interreal.masks.appearance import LocalColour
+
+    img, lab = _car_keyframe()
+    soft, known = anchor_soft(lab, 1, (160, 120))
+    local = LocalColour.fit(img, soft, known)
+    before = local.stats.copy()
+    local.warp(0, np.array([[1, 0, 7], [0, 1, 3], [0, 0, 1]], np.float64), None)
+    assert np.allclose(local.stats[30:100, 40:140, 0], before[27:97, 33:133, 0], atol=1e-4)
+    flipped = LocalColour(before.copy())
+    flipped.warp(0, None, lambda a: a[::-1].copy())
+    assert np.allclose(flipped.stats, before[::-1])
+
+
+def test_grow_takes_the_keyframe_colours_near_each_pixel():
+    """Both strips move with the box: the dark strip over its dark top joins it, the dark shadow under it does not
+    with the local colours (the keyframe said background there), and does with the global histogram alone."""
+    from interreal.masks.appearance import LocalColour, lab_of
+
+    w, h = 160, 120
+    img, lab = _car_keyframe(w, h)
+    key_soft, known = anchor_soft(lab, 1, (w, h))
+    model = ColourModel.fit(img, key_soft, known, AppearanceConfig())
+    local = LocalColour.fit(img, key_soft, known)
+    prop = _propagator(w, h)
+    obj = lab == 1
+    top = np.zeros_like(obj)
+    top[38:40, 60:100] = True                  # dark, the object's, not in the mask yet
+    shadow = np.zeros_like(obj)
+    shadow[80:82, 60:100] = True               # dark, background, moving with the object
+    frame = img.copy()
+    frame[top] = (50, 50, 50)
+    push = np.zeros((h, w, 2), np.float32)
+    push[..., 0] = -3.0
+    push[obj | top | shadow | (lab_of(frame)[..., 0] < 30), 0] = 4.0
+    soft = np.zeros((h, w, 2), np.float32)
+    soft[..., 0] = np.where(obj, 0.95, 0.02)
+    soft[..., 1] = 1.0 - soft[..., 0]
+    xs, ys = prop.grid
+    st = Step(xs, ys, np.ones((h, w), np.float32), push)
+    bins = quantize(frame, model.cfg.bins)
+    fits = prop._plane_fits(soft, st)
+    near = prop._grow(soft, st, fits, model, bins, 0.8, local, frame)
+    assert near[top, 0].min() > 0.8 and np.allclose(near[shadow], soft[shadow])
+    far = prop._grow(soft, st, fits, model, bins, 0.8)
+    assert far[shadow, 0].min() > 0.8                        # the global histogram takes the shadow

@@ -3,7 +3,9 @@
 Flow is smooth across object boundaries, so a warped mask creeps a pixel or two per frame into whatever
 moves with the object (water around a swan, a road under a car). A colour likelihood per label, learned
 where the label is known (the keyframe), pulls the boundary back at every step. The background model is
-learned on a band around the objects (the background that matters is the one next to them).
+learned on a band around the objects (the background that matters is the one next to them). Where one colour
+belongs to both labels over the whole frame (a car's underside and its shadow), `LocalColour` keeps each label's
+colours near every pixel of the keyframe, carried along a chain with the object.
 """
 
 from __future__ import annotations
@@ -140,3 +142,77 @@ def heldout_information(image: np.ndarray, soft: np.ndarray, known: np.ndarray, 
         gain = np.mean([np.log(p[y == k, k]).mean() for k in present]) + np.log(len(present))
         gains.append(gain / np.log(len(present)))
     return float(np.clip(np.mean(gains), 0.0, 1.0)) if gains else 0.0
+
+
+LOCAL_RADIUS = 0.03  # `LocalColour`'s window around each pixel, as a share of the work image's long side
+LOCAL_FLOOR = 16.0   # its variance floor (Lab units squared): a flat window must not make one colour certain
+
+
+@dataclass
+class LocalColour:
+    """Each object's and the background's colour near every pixel, learned on a keyframe and carried along a
+    chain with the object (Video SnapCut's local classifiers, as maps).
+
+    A global histogram cannot tell a car's dark underside from the shadow it casts, or a white car from the white
+    concrete it drives on: over the whole keyframe those colours belong to both labels. Near a given part of the
+    object they seldom do: the keyframe says the dark strip right under the car is background. Per object k the
+    maps hold, for every work pixel, the mean Lab colour and variance of the object's and of the background's
+    keyframe pixels within `LOCAL_RADIUS` (box sums), and the share of the window each covers. The maps move with
+    the object's own motion (`warp`), so they stay next to the part they describe.
+    """
+
+    stats: np.ndarray  # (h, w, K, 10): object mean (3), variance, share; background mean (3), variance, share
+
+    @classmethod
+    def fit(cls, image: np.ndarray, soft: np.ndarray, known: np.ndarray) -> "LocalColour":
+        h, w, c = soft.shape
+        lab = lab_of(image)
+        r = max(2, round(LOCAL_RADIUS * max(h, w)))
+        box = (2 * r + 1, 2 * r + 1)
+        labels = np.argmax(soft, axis=-1)
+        ok = (known > 0.5) & (soft.max(-1) > 0.5)
+        sq = (lab * lab).sum(-1)
+        out = np.zeros((h, w, c - 1, 10), np.float32)
+        bg = (ok & (labels == c - 1)).astype(np.float32)
+        for k in range(c - 1):
+            for j, m in enumerate(((ok & (labels == k)).astype(np.float32), bg)):
+                n = cv2.boxFilter(m, -1, box, normalize=True)
+                s = cv2.boxFilter(lab * m[..., None], -1, box, normalize=True)
+                s2 = cv2.boxFilter(sq * m, -1, box, normalize=True)
+                mean = s / np.maximum(n, 1e-6)[..., None]
+                var = s2 / np.maximum(n, 1e-6) - (mean * mean).sum(-1)
+                out[..., k, 5 * j:5 * j + 3] = mean
+                out[..., k, 5 * j + 3] = np.maximum(var / 3.0, LOCAL_FLOOR)
+                out[..., k, 5 * j + 4] = n
+        return cls(out)
+
+    def log_ratio(self, k: int, lab: np.ndarray, ys: np.ndarray, xs: np.ndarray, min_share: float = 0.1) -> np.ndarray:
+        """Log-likelihood of object k over the background for the Lab colours `lab` (n, 3) at pixels (ys, xs),
+        under the two local Gaussians there; NaN where either label covers under `min_share` of the window (no
+        local evidence: the caller falls back on the global model)."""
+        st = self.stats[ys, xs, k]
+        d_f = ((lab - st[:, 0:3]) ** 2).sum(-1)
+        d_b = ((lab - st[:, 5:8]) ** 2).sum(-1)
+        v_f, v_b = np.maximum(st[:, 3], LOCAL_FLOOR), np.maximum(st[:, 8], LOCAL_FLOOR)  # 0 where a warp left the image
+        out = -0.5 * d_f / v_f - 1.5 * np.log(v_f) + 0.5 * d_b / v_b + 1.5 * np.log(v_b)
+        out[(st[:, 4] < min_share) | (st[:, 9] < min_share)] = np.nan
+        return out
+
+    def warp(self, k: int, H: np.ndarray | None, flow_warp) -> None:
+        """Move object k's maps one step: by its homography H where trusted, else by the chain's per-pixel warp
+        (`flow_warp`, a callable on an (h, w, C) array)."""
+        st = self.stats[..., k, :]
+        h, w = st.shape[:2]
+        parts = [np.ascontiguousarray(st[..., i:j]) for i, j in ((0, 4), (4, 8), (8, 10))]
+        if H is not None:
+            moved = [cv2.warpPerspective(x, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                     for x in parts]
+        else:
+            moved = [flow_warp(x) for x in parts]
+        moved = np.dstack([m.reshape(h, w, -1) for m in moved])
+        self.stats[..., k, :] = moved
+
+
+def lab_of(image: np.ndarray) -> np.ndarray:
+    """(h, w, 3) float32 CIE Lab (L 0..100) of an RGB uint8 image."""
+    return cv2.cvtColor(image.astype(np.float32) / 255.0, cv2.COLOR_RGB2Lab)

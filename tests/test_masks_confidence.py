@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -12,6 +13,7 @@ from interreal import atomic
 from interreal.conventions import fid_of_index, frame_name
 from interreal.masks import health as H
 from interreal.masks import propagate
+from interreal.masks.stage import make_config
 from interreal.paths import require_shared
 
 cv2.setNumThreads(2)
@@ -35,7 +37,8 @@ def disk_sequence(n: int = 24, hidden: range = range(0), w: int = 128, h: int = 
     return images, truths
 
 
-def run(root: Path, images: list, truths: list, keys: list[int], name: str = "disk") -> dict:
+def run(root: Path, images: list, truths: list, keys: list[int], name: str = "disk", **track) -> dict:
+    """The masks stage on these frames and keyframe truths; `track`: TrackConfig fields to change."""
     ds = root / "ds"
     for i, img in enumerate(images):
         atomic.write_image(ds / "images" / f"{frame_name(i)}.png", img)
@@ -43,7 +46,8 @@ def run(root: Path, images: list, truths: list, keys: list[int], name: str = "di
     for k in keys:
         atomic.write_image(kdir / f"{fid_of_index(k)}.png", truths[k])
     atomic.write_yaml(kdir / "mapping.yaml", {0: name})
-    propagate(ds, kdir, preview="none", progress=False)
+    config = dataclasses.replace(make_config(), **track) if track else None
+    propagate(ds, kdir, preview="none", progress=False, config=config)
     return json.loads((ds / "reports" / "masks.json").read_text())
 
 
@@ -160,26 +164,32 @@ def test_davis_lost_object_is_warned_and_an_easy_sequence_is_not(tmp_path):
 
 
 def test_davis_look_alike_on_the_background_is_not_taken_for_the_lost_object(tmp_path):
-    """motocross-jump, first frame only, full size: the bike flies away from the camera, its mask shrinks with it
-    and counts as collapsed at frame 32; a patch of the dirt track has the muddy bike's colours. Taken for the bike
-    (as it was before the motion check), the mask then stays on the track and frames 32-39 score J 0.13; refused
-    because it pans with the background while what is left of the mask moves with the bike, they score 0.66. With
-    the keyframe's local colours in `_grow` (`TrackConfig.local_colour`) the mask holds more of the bike and
-    collapses only at frame 38 (frames 32-39: J 0.75), where the look-alike is refused again. The report names the
-    refused frames, the warning says why, and the collapse is the first frame to annotate."""
+    """motocross-jump, first frame only, full size: the bike flies away from the camera. With the growth's colour
+    test by the whole keyframe's histograms (`TrackConfig.local_colour` off) its mask shrinks and counts as collapsed
+    at frame 32, and a patch of the dirt track has the muddy bike's colours. Taken for the bike (as it was before the
+    motion check), the mask then stays on the track and frames 32-39 score J 0.13; refused because it pans with the
+    background while what is left of the mask moves with the bike, they score 0.66. The report names the refused
+    frames, the warning says why, and the collapse is the first frame to annotate. With the keyframe's colours near
+    each pixel (the default) the mask holds the bike: nothing collapses, nothing is taken, J 0.79 there."""
     images, truths = davis_clip("motocross-jump", 40, size=(854, 480))
-    rep = run(tmp_path / "moto", images, truths, [0], "bike")
+
+    def j(root: Path) -> list[float]:
+        masks = [np.load(root / "ds" / "masks" / f"{fid_of_index(i)}.npy")[..., 0] for i in range(32, 40)]
+        return [float((m & (t == 1)).sum() / max((m | (t == 1)).sum(), 1)) for m, t in zip(masks, truths[32:40])]
+
+    rep = run(tmp_path / "moto", images, truths, [0], "bike", local_colour=False)
     fig = rep["figures"]
     refused = [int(f) for f in fig["redetect_refused"]["bike"]]
-    assert refused and 30 <= min(refused) <= 39, refused
-    assert not any(30 <= int(f) <= 39 for f in fig["redetected"]["bike"]), fig["redetected"]
-    masks = [np.load(tmp_path / "moto" / "ds" / "masks" / f"{fid_of_index(i)}.npy")[..., 0] for i in range(32, 40)]
-    j = [float((m & (t == 1)).sum() / max((m | (t == 1)).sum(), 1)) for m, t in zip(masks, truths[32:40])]
-    assert np.mean(j) > 0.6, j
+    assert refused and 30 <= min(refused) <= 34, refused
+    assert not any(30 <= int(f) <= 34 for f in fig["redetected"]["bike"]), fig["redetected"]
+    assert np.mean(j(tmp_path / "moto")) > 0.5, j(tmp_path / "moto")
     assert any("moved with the background" in w["message"] for w in rep["warnings"]), rep["warnings"]
     # where the mask collapsed (the chain's first frame under the collapse size, at or before the first refusal)
     # is the first frame to annotate, as for a collapse that was found again
     assert 28 <= int(fig["suggested_frames"][0]) <= min(refused), fig["suggested_frames"]
+    rep = run(tmp_path / "local", images, truths, [0], "bike")
+    assert not any(30 <= int(f) <= 39 for f in rep["figures"]["redetected"]["bike"]), rep["figures"]["redetected"]
+    assert np.mean(j(tmp_path / "local")) > 0.7, j(tmp_path / "local")
 
 
 def approaching_disk(n: int = 24, w: int = 480, h: int = 360, r0: int = 50) -> tuple[list, list]:

@@ -80,6 +80,20 @@ def test_motion_evidence_removes_mask_that_moves_with_the_background():
     assert np.allclose(prop._motion_evidence(soft, same, prop._plane_fits(soft, same), 1.0), soft, atol=1e-5)
 
 
+def _grow_step(prop: Propagator, obj: np.ndarray, moving: np.ndarray) -> tuple[np.ndarray, Step]:
+    """A soft map of the mask `obj`, and a step whose flow moves `moving` +4 px and everything else -3 px (the
+    camera), for `_grow`."""
+    h, w = obj.shape
+    push = np.zeros((h, w, 2), np.float32)
+    push[..., 0] = -3.0
+    push[moving, 0] = 4.0
+    soft = np.zeros((h, w, 2), np.float32)
+    soft[..., 0] = np.where(obj, 0.95, 0.02)
+    soft[..., 1] = 1.0 - soft[..., 0]
+    xs, ys = prop.grid
+    return soft, Step(xs, ys, np.ones((h, w), np.float32), push)
+
+
 def test_grow_adds_only_pixels_that_move_with_the_object_and_have_its_colours():
     """Around a red object mask (flow +4 px, camera -3 px): a red strip the mask missed that moves with the object
     joins it; a green strip moving with it (a shadow, a wake) does not, nor a red strip moving with the camera;
@@ -100,14 +114,8 @@ def test_grow_adds_only_pixels_that_move_with_the_object_and_have_its_colours():
     still[40:80, 60 - band:60] = True          # red, moves with the camera
     frame = np.full((h, w, 3), (90, 120, 90), np.uint8)
     frame[obj | missed | still] = (220, 40, 40)
-    push = np.zeros((h, w, 2), np.float32)
-    push[..., 0] = -3.0
-    push[obj | missed | shadow, 0] = 4.0
-    soft = np.zeros((h, w, 2), np.float32)
-    soft[..., 0] = np.where(obj, 0.95, 0.02)
-    soft[..., 1] = 1.0 - soft[..., 0]
+    soft, st = _grow_step(prop, obj, obj | missed | shadow)
     xs, ys = prop.grid
-    st = Step(xs, ys, np.ones((h, w), np.float32), push)
     bins = quantize(frame, model.cfg.bins)
     out = prop._grow(soft, st, prop._plane_fits(soft, st), model, bins, 0.8)
     assert out[missed, 0].min() > 0.8, out[missed, 0].min()          # 0.02 -> 0.804
@@ -258,24 +266,37 @@ def test_local_colour_tells_apart_what_the_keyframe_histogram_mixes():
 
 
 def test_local_colour_maps_move_with_the_object():
-    """A homography that shifts by (+7, +3) px moves every map by it; without one, the chain's own warp is used."""
-    from interreal.masks.appearance import LocalColour
+    """Moved by (+8, +4) px, by a homography or by the chain's per-pixel warp alike, the local evidence is where
+    the object went: the dark top's and the shadow's answers 8 px right and 4 px down, and no drift on a still
+    frame (each map's cell grid keeps its centres)."""
+    from interreal.masks.appearance import LocalColour, lab_of
 
     img, lab = _car_keyframe()
     soft, known = anchor_soft(lab, 1, (160, 120))
-    local = LocalColour.fit(img, soft, known)
-    before = local.stats.copy()
-    local.warp(0, np.array([[1, 0, 7], [0, 1, 3], [0, 0, 1]], np.float64), None)
-    assert np.allclose(local.stats[30:100, 40:140, 0], before[27:97, 33:133, 0], atol=1e-4)
-    flipped = LocalColour(before.copy())
-    flipped.warp(0, None, lambda a: a[::-1].copy())
-    assert np.allclose(flipped.stats, before[::-1])
+    dark = lab_of(np.full((1, 1, 3), 50, np.uint8)).reshape(1, 3)
+    ys, xs = np.array([38, 82]), np.array([80, 80])
+
+    def answers(local, dy=0, dx=0):
+        return local.log_ratio(0, np.repeat(dark, 2, 0), ys + dy, xs + dx)
+
+    before = answers(LocalColour.fit(img, soft, known))
+    grid_x, grid_y = np.meshgrid(np.arange(160, dtype=np.float32), np.arange(120, dtype=np.float32))
+    by_h, by_flow, still = (LocalColour.fit(img, soft, known) for _ in range(3))
+    by_h.warp(0, np.array([[1, 0, 8], [0, 1, 4], [0, 0, 1]], np.float64), grid_x, grid_y)
+    by_flow.warp(0, None, grid_x - 8, grid_y - 4)
+    for _ in range(10):
+        still.warp(0, None, grid_x, grid_y)
+    assert before[0] > 2.0 and before[1] < -2.0, before
+    assert np.allclose(answers(by_h, 4, 8), before, atol=1e-3)
+    assert np.allclose(answers(by_flow, 4, 8), before, atol=1e-3)
+    assert np.allclose(answers(still), before, atol=1e-3)
+    assert not np.allclose(answers(by_h), before, atol=0.5)   # the maps did move
 
 
 def test_grow_takes_the_keyframe_colours_near_each_pixel():
     """Both strips move with the box: the dark strip over its dark top joins it, the dark shadow under it does not
     with the local colours (the keyframe said background there), and does with the global histogram alone."""
-    from interreal.masks.appearance import LocalColour, lab_of
+    from interreal.masks.appearance import LocalColour
 
     w, h = 160, 120
     img, lab = _car_keyframe(w, h)
@@ -290,14 +311,7 @@ def test_grow_takes_the_keyframe_colours_near_each_pixel():
     shadow[80:82, 60:100] = True               # dark, background, moving with the object
     frame = img.copy()
     frame[top] = (50, 50, 50)
-    push = np.zeros((h, w, 2), np.float32)
-    push[..., 0] = -3.0
-    push[obj | top | shadow | (lab_of(frame)[..., 0] < 30), 0] = 4.0
-    soft = np.zeros((h, w, 2), np.float32)
-    soft[..., 0] = np.where(obj, 0.95, 0.02)
-    soft[..., 1] = 1.0 - soft[..., 0]
-    xs, ys = prop.grid
-    st = Step(xs, ys, np.ones((h, w), np.float32), push)
+    soft, st = _grow_step(prop, obj, obj | top | shadow)
     bins = quantize(frame, model.cfg.bins)
     fits = prop._plane_fits(soft, st)
     near = prop._grow(soft, st, fits, model, bins, 0.8, local, frame)

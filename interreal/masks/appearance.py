@@ -146,6 +146,8 @@ def heldout_information(image: np.ndarray, soft: np.ndarray, known: np.ndarray, 
 
 LOCAL_RADIUS = 0.03  # `LocalColour`'s window around each pixel, as a share of the work image's long side
 LOCAL_FLOOR = 16.0   # its variance floor (Lab units squared): a flat window must not make one colour certain
+LOCAL_CELL = 4       # ... and its maps are kept on a grid of this many work pixels (the windows are 29 px wide at
+                     # 480 px: the maps are smooth), which makes moving them every step 16x cheaper
 
 
 @dataclass
@@ -156,41 +158,46 @@ class LocalColour:
     A global histogram cannot tell a car's dark underside from the shadow it casts, or a white car from the white
     concrete it drives on: over the whole keyframe those colours belong to both labels. Near a given part of the
     object they seldom do: the keyframe says the dark strip right under the car is background. Per object k the
-    maps hold, for every work pixel, the mean Lab colour and variance of the object's and of the background's
-    keyframe pixels within `LOCAL_RADIUS` (box sums), and the share of the window each covers. The maps move with
-    the object's own motion (`warp`), so they stay next to the part they describe.
+    maps hold, around every work pixel, the mean Lab colour and variance of the object's and of the background's
+    keyframe pixels within `LOCAL_RADIUS` (box sums), and the share of the window each covers, on a grid of
+    `LOCAL_CELL` px. The maps move with the object's own motion (`warp`), so they stay next to the part they
+    describe.
     """
 
-    stats: np.ndarray  # (h, w, K, 10): object mean (3), variance, share; background mean (3), variance, share
+    stats: np.ndarray  # (h / cell, w / cell, K, 10): object mean (3), variance, share; background the same
+    cell: int = LOCAL_CELL
 
     @classmethod
-    def fit(cls, image: np.ndarray, soft: np.ndarray, known: np.ndarray) -> "LocalColour":
+    def fit(cls, image: np.ndarray, soft: np.ndarray, known: np.ndarray, cell: int = LOCAL_CELL) -> "LocalColour":
         h, w, c = soft.shape
         lab = lab_of(image)
         r = max(2, round(LOCAL_RADIUS * max(h, w)))
         box = (2 * r + 1, 2 * r + 1)
+        grid = (max(1, -(-w // cell)), max(1, -(-h // cell)))
         labels = np.argmax(soft, axis=-1)
         ok = (known > 0.5) & (soft.max(-1) > 0.5)
         sq = (lab * lab).sum(-1)
-        out = np.zeros((h, w, c - 1, 10), np.float32)
+        out = np.zeros((grid[1], grid[0], c - 1, 10), np.float32)
         bg = (ok & (labels == c - 1)).astype(np.float32)
         for k in range(c - 1):
             for j, m in enumerate(((ok & (labels == k)).astype(np.float32), bg)):
-                n = cv2.boxFilter(m, -1, box, normalize=True)
-                s = cv2.boxFilter(lab * m[..., None], -1, box, normalize=True)
-                s2 = cv2.boxFilter(sq * m, -1, box, normalize=True)
-                mean = s / np.maximum(n, 1e-6)[..., None]
-                var = s2 / np.maximum(n, 1e-6) - (mean * mean).sum(-1)
+                planes = (m, *np.moveaxis(lab * m[..., None], -1, 0), sq * m)  # share, colour sums, square sum
+                sums = np.dstack([cv2.resize(cv2.boxFilter(np.ascontiguousarray(x), -1, box, normalize=True), grid,
+                                             interpolation=cv2.INTER_AREA) for x in planes])
+                n = sums[..., 0]
+                mean = sums[..., 1:4] / np.maximum(n, 1e-6)[..., None]
+                var = sums[..., 4] / np.maximum(n, 1e-6) - (mean * mean).sum(-1)
                 out[..., k, 5 * j:5 * j + 3] = mean
                 out[..., k, 5 * j + 3] = np.maximum(var / 3.0, LOCAL_FLOOR)
                 out[..., k, 5 * j + 4] = n
-        return cls(out)
+        return cls(out, cell)
 
     def log_ratio(self, k: int, lab: np.ndarray, ys: np.ndarray, xs: np.ndarray, min_share: float = 0.1) -> np.ndarray:
-        """Log-likelihood of object k over the background for the Lab colours `lab` (n, 3) at pixels (ys, xs),
+        """Log-likelihood of object k over the background for the Lab colours `lab` (n, 3) at work pixels (ys, xs),
         under the two local Gaussians there; NaN where either label covers under `min_share` of the window (no
         local evidence: the caller falls back on the global model)."""
-        st = self.stats[ys, xs, k]
+        gh, gw = self.stats.shape[:2]
+        st = self.stats[np.minimum(ys // self.cell, gh - 1), np.minimum(xs // self.cell, gw - 1), k]
         d_f = ((lab - st[:, 0:3]) ** 2).sum(-1)
         d_b = ((lab - st[:, 5:8]) ** 2).sum(-1)
         v_f, v_b = np.maximum(st[:, 3], LOCAL_FLOOR), np.maximum(st[:, 8], LOCAL_FLOOR)  # 0 where a warp left the image
@@ -198,19 +205,24 @@ class LocalColour:
         out[(st[:, 4] < min_share) | (st[:, 9] < min_share)] = np.nan
         return out
 
-    def warp(self, k: int, H: np.ndarray | None, flow_warp) -> None:
-        """Move object k's maps one step: by its homography H where trusted, else by the chain's per-pixel warp
-        (`flow_warp`, a callable on an (h, w, C) array)."""
-        st = self.stats[..., k, :]
-        h, w = st.shape[:2]
-        parts = [np.ascontiguousarray(st[..., i:j]) for i, j in ((0, 4), (4, 8), (8, 10))]
+    def warp(self, k: int, H: np.ndarray | None, map_x: np.ndarray, map_y: np.ndarray) -> None:
+        """Move object k's maps one step: by its homography H (work pixels) where trusted, else by the chain's
+        per-pixel warp (`flow.Step`'s map_x, map_y: where each work pixel of the new frame comes from)."""
+        gh, gw = self.stats.shape[:2]
+        parts = [np.ascontiguousarray(self.stats[..., k, i:j]) for i, j in ((0, 4), (4, 8), (8, 10))]
         if H is not None:
-            moved = [cv2.warpPerspective(x, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            c, o = self.cell, (self.cell - 1) / 2  # cell i's centre is work pixel c i + o
+            S = np.array([[1.0 / c, 0.0, -o / c], [0.0, 1.0 / c, -o / c], [0.0, 0.0, 1.0]])
+            Hc = S @ H @ np.linalg.inv(S)
+            moved = [cv2.warpPerspective(x, Hc, (gw, gh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
                      for x in parts]
         else:
-            moved = [flow_warp(x) for x in parts]
-        moved = np.dstack([m.reshape(h, w, -1) for m in moved])
-        self.stats[..., k, :] = moved
+            o = (self.cell - 1) / 2  # a cell's mean source position, back in cells
+            mx, my = (((cv2.resize(m, (gw, gh), interpolation=cv2.INTER_AREA) if self.cell > 1 else m) - o) / self.cell
+                      for m in (map_x, map_y))
+            moved = [cv2.remap(x, mx.astype(np.float32), my.astype(np.float32), cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_REPLICATE) for x in parts]
+        self.stats[..., k, :] = np.dstack([m.reshape(gh, gw, -1) for m in moved])
 
 
 def lab_of(image: np.ndarray) -> np.ndarray:

@@ -91,12 +91,12 @@ class TrackConfig:
     grow: float = 0.8
     # `_grow`'s colour test by the keyframe's colours near each pixel (`appearance.LocalColour`, carried with the
     # object) rather than over the whole keyframe, where both are known: a car's shadow is as dark as its
-    # underside, but not next to it on the keyframe. DAVIS first-frame mean J 0.731 -> 0.749 (motocross-jump +0.08,
-    # drift-straight +0.07, car-shadow +0.03, car-roundabout +0.015; scooter-black -0.018, the rest within 0.004);
-    # the window's radius 0.03 of the long side (0.02: 0.747, 0.05: 0.745, 0.08: 0.740), local evidence where each
-    # label covers a tenth of it (0.2: 0.748, 0.05: 0.733). Tried and left out: the same test in `_cut`
-    # (0.727-0.735), the sum of local and global evidence (0.741), the local colours in place of the global prior
-    # every step (0.683: leaks)
+    # underside, but not next to it on the keyframe. DAVIS first-frame mean J 0.731 -> 0.751 (motocross-jump +0.10,
+    # drift-straight +0.05, car-shadow +0.04, car-roundabout +0.015; scooter-black -0.014, the rest within 0.01);
+    # every-10 unchanged (0.849). Its window's radius 0.03 of the long side (0.02: 0.747, 0.05: 0.745, 0.08: 0.740, at
+    # full map resolution), local evidence where each label covers a tenth of it (0.2: 0.748, 0.05: 0.733). Tried
+    # and left out: the same test in `_cut` (0.727-0.735), the sum of local and global evidence (0.741), the local
+    # colours in place of the global prior every step (0.683: leaks)
     local_colour: bool = True
     # on the same chains, the share of each object's probability set by a GrabCut of the frame itself (`_cut`;
     # 0 = off). DAVIS first-frame mean J 0.705 -> 0.721 (motocross-jump +0.11, horsejump-high and dog +0.03,
@@ -266,7 +266,7 @@ class Propagator:
             warped, trust, scale, hs = self._rigid(soft, st, warped, trust)
         if local is not None:
             for k in range(self.k):
-                local.warp(k, hs[k], st.warp)
+                local.warp(k, hs[k], st.map_x, st.map_y)
         # (weakest-link trust along the chain, 'seen': the chain started inside the anchor's annotation).
         # A minimum rather than a product: a product decays to nothing over a long gap even on perfect
         # tracking, and then the temporal weights alone decide the fusion.

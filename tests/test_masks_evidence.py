@@ -282,10 +282,10 @@ def test_local_colour_maps_move_with_the_object():
     before = answers(LocalColour.fit(img, soft, known))
     grid_x, grid_y = np.meshgrid(np.arange(160, dtype=np.float32), np.arange(120, dtype=np.float32))
     by_h, by_flow, still = (LocalColour.fit(img, soft, known) for _ in range(3))
-    by_h.warp(0, np.array([[1, 0, 8], [0, 1, 4], [0, 0, 1]], np.float64), grid_x, grid_y)
-    by_flow.warp(0, None, grid_x - 8, grid_y - 4)
+    by_h.warp([np.array([[1, 0, 8], [0, 1, 4], [0, 0, 1]], np.float64)], grid_x, grid_y)
+    by_flow.warp([None], grid_x - 8, grid_y - 4)
     for _ in range(10):
-        still.warp(0, None, grid_x, grid_y)
+        still.warp([None], grid_x, grid_y)
     assert before[0] > 2.0 and before[1] < -2.0, before
     assert np.allclose(answers(by_h, 4, 8), before, atol=1e-3)
     assert np.allclose(answers(by_flow, 4, 8), before, atol=1e-3)

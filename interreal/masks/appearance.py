@@ -205,24 +205,25 @@ class LocalColour:
         out[(st[:, 4] < min_share) | (st[:, 9] < min_share)] = np.nan
         return out
 
-    def warp(self, k: int, H: np.ndarray | None, map_x: np.ndarray, map_y: np.ndarray) -> None:
-        """Move object k's maps one step: by its homography H (work pixels) where trusted, else by the chain's
-        per-pixel warp (`flow.Step`'s map_x, map_y: where each work pixel of the new frame comes from)."""
+    def warp(self, hs: list[np.ndarray | None], map_x: np.ndarray, map_y: np.ndarray) -> None:
+        """Move every object's maps one step: object k's by its homography hs[k] (work pixels) where trusted, else
+        by the chain's per-pixel warp (`flow.Step`'s map_x, map_y: where each work pixel of the new frame comes
+        from; brought to the cell grid once for all objects)."""
         gh, gw = self.stats.shape[:2]
-        parts = [np.ascontiguousarray(self.stats[..., k, i:j]) for i, j in ((0, 4), (4, 8), (8, 10))]
-        if H is not None:
-            c, o = self.cell, (self.cell - 1) / 2  # cell i's centre is work pixel c i + o
-            S = np.array([[1.0 / c, 0.0, -o / c], [0.0, 1.0 / c, -o / c], [0.0, 0.0, 1.0]])
-            Hc = S @ H @ np.linalg.inv(S)
-            moved = [cv2.warpPerspective(x, Hc, (gw, gh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-                     for x in parts]
-        else:
-            o = (self.cell - 1) / 2  # a cell's mean source position, back in cells
-            mx, my = (((cv2.resize(m, (gw, gh), interpolation=cv2.INTER_AREA) if self.cell > 1 else m) - o) / self.cell
-                      for m in (map_x, map_y))
-            moved = [cv2.remap(x, mx.astype(np.float32), my.astype(np.float32), cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_REPLICATE) for x in parts]
-        self.stats[..., k, :] = np.dstack([m.reshape(gh, gw, -1) for m in moved])
+        c, o = self.cell, (self.cell - 1) / 2  # cell i's centre is work pixel c i + o
+        coarse = None
+        for k, H in enumerate(hs):
+            parts = [np.ascontiguousarray(self.stats[..., k, i:j]) for i, j in ((0, 4), (4, 8), (8, 10))]
+            if H is not None:
+                S = np.array([[1.0 / c, 0.0, -o / c], [0.0, 1.0 / c, -o / c], [0.0, 0.0, 1.0]])
+                moved = [cv2.warpPerspective(x, S @ H @ np.linalg.inv(S), (gw, gh), flags=cv2.INTER_LINEAR,
+                                             borderMode=cv2.BORDER_REPLICATE) for x in parts]
+            else:
+                if coarse is None:  # a cell's mean source position, back in cells
+                    coarse = [(((cv2.resize(m, (gw, gh), interpolation=cv2.INTER_AREA) if c > 1 else m) - o) / c)
+                              .astype(np.float32) for m in (map_x, map_y)]
+                moved = [cv2.remap(x, *coarse, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for x in parts]
+            self.stats[..., k, :] = np.dstack([m.reshape(gh, gw, -1) for m in moved])
 
 
 def lab_of(image: np.ndarray) -> np.ndarray:

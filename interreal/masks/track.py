@@ -265,8 +265,7 @@ class Propagator:
         if self.cfg.rigid > 0:
             warped, trust, scale, hs = self._rigid(soft, st, warped, trust)
         if local is not None:
-            for k in range(self.k):
-                local.warp(k, hs[k], st.map_x, st.map_y)
+            local.warp(hs, st.map_x, st.map_y)
         # (weakest-link trust along the chain, 'seen': the chain started inside the anchor's annotation).
         # A minimum rather than a product: a product decays to nothing over a long gap even on perfect
         # tracking, and then the temporal weights alone decide the fusion.

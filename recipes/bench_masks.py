@@ -15,8 +15,9 @@ lost_warned (an `object-lost` warning), predicted_j (the stage's own estimate), 
 found a collapsed object again from its keyframe's appearance), fine_share (the stage's share of the keyframe masks
 in parts too fine to propagate) and j_ceiling_fine (the J left if exactly those parts of the truth are lost).
 Warning quality over the DAVIS runs of both protocols: precision / recall of "warned" for "J < 0.7", with the
-shipped weights (in-sample) and leave-one-sequence-out (the health model refit without the held-out sequence).
-`--fit` prints weights refit on all sequences (to paste into interreal/masks/health.py).
+shipped weights (in-sample) and leave-one-sequence-out (the health model refit without the held-out sequence), for
+the default setting and, with `--variants`, for every setting run. `--fit` prints weights refit on every run (to
+paste into interreal/masks/health.py; they were fit with `--variants ours,ours-fast,baseline`).
 
     python recipes/bench_masks.py --quick --out bench/
     python recipes/bench_masks.py --out bench/
@@ -201,11 +202,11 @@ def effort_curve(seq: str, ds: Path, gts, names, work: Path, first: dict, every1
 
 def loo_warning(runs: list[dict]) -> dict:
     """Precision / recall of the warning for 'mean J < BAD_J' over the DAVIS protocol runs: as the stage shipped
-    it, and with the health model refit leave-one-sequence-out (on the protocol runs of the other sequences,
-    the same set the shipped weights were fit on)."""
-    davis = [r for r in runs if r["data"] != "synth" and r["setting"] in ("first", "every10") and r["variant"] == "ours"]
+    it, and with the health model refit leave-one-sequence-out (on the protocol runs of the other sequences, every
+    variant run, the set the shipped weights were fit on: `--variants ours,ours-fast,baseline --fit`). Figures for
+    the default setting ("ours") and, where other variants ran, for every setting together."""
+    davis = [r for r in runs if r["data"] != "synth" and r["setting"] in ("first", "every10")]
     train = davis
-
     def inputs(r):
         """Per object: (features (n, F), area, ref area, expected, keyframe, J per frame)."""
         key = np.array(r["_frames"]["key"])
@@ -233,16 +234,23 @@ def loo_warning(runs: list[dict]) -> dict:
                 "warned": sum(pred), "bad": sum(truth), "runs": len(truth)}
 
     truth = [r["j_worst_object"] < BAD_J for r in davis]
-    out = {"shipped": pr([r["warned"] for r in davis], truth),
-           "shipped_any_warning": pr([r["warned"] or r["lost_warned"] for r in davis], truth)}
+    ours = [r["variant"] == "ours" for r in davis]
+
+    def both(pred: list[bool]) -> dict:
+        """pr over the default setting's runs, and over every setting's where others ran."""
+        out = pr([p for p, o in zip(pred, ours) if o], [t for t, o in zip(truth, ours) if o])
+        return out if all(ours) else {**out, "all_settings": pr(pred, truth)}
+
+    out = {"shipped": both([r["warned"] for r in davis]),
+           "shipped_any_warning": both([r["warned"] or r["lost_warned"] for r in davis])}
     loo_pred, detail = [], []
     for r in davis:
         w = H.fit(*means([x for x in train if x["data"] != r["data"]]))
         p = predicted(r, w)
         loo_pred.append(p < H.WARN_J)
-        detail.append({"data": r["data"], "setting": r["setting"], "j": r["j_mean"], "predicted_loo": round(p, 3),
-                       "predicted_shipped": r["predicted_j"]})
-    out["leave_one_out"] = pr(loo_pred, truth)
+        detail.append({"data": r["data"], "setting": r["setting"], "variant": r["variant"], "j": r["j_mean"],
+                       "predicted_loo": round(p, 3), "predicted_shipped": r["predicted_j"]})
+    out["leave_one_out"] = both(loo_pred)
     out["leave_one_out_runs"] = detail
     out["weights_all"] = [round(float(v), 3) for v in H.fit(*means(train))]
     return out
@@ -286,6 +294,9 @@ def main() -> int:
         ds, gts, names, keys = synth_dataset(work, args.quick)
         runs.append(run_one("synth", ds, gts, names, keys, "synth60", "ours", work))
         print(f"  synth: J {runs[-1]['j_mean']:.3f} ({runs[-1]['per_object']})", file=sys.stderr)
+    # the per-frame figures first: an hour of runs is kept whatever the summary below does
+    atomic.write_json(args.out / "masks_frames.json",
+                      [{"data": r["data"], "setting": r["setting"], "variant": r["variant"], **r["_frames"]} for r in runs])
     summary = summarise(runs, seqs, curves)
     warning = loo_warning(runs) if len({r["data"] for r in runs if r["data"] != "synth"}) > 1 else {}
     summary["warning"] = {k: v for k, v in warning.items() if k != "leave_one_out_runs"}
@@ -294,8 +305,8 @@ def main() -> int:
     targets = {"davis first frame only j_mean": 0.75, "davis keyframe every 10 j_mean": 0.92,
                "whole command fps": 15, "synth keyframes every 60, each object": 0.93,
                "warning precision and recall (J < 0.7)": 0.9}
-    frames = [{"data": r["data"], "setting": r["setting"], **r.pop("_frames")} for r in runs]
-    atomic.write_json(args.out / "masks_frames.json", frames)
+    for r in runs:
+        r.pop("_frames")
     write_results(args.out, "masks", runs, quick=args.quick, threads=THREADS, targets=targets, summary=summary,
                   warning_runs=warning.get("leave_one_out_runs", []),
                   note="every run is the whole `interreal masks` command (start-up, previews, writing) on a shared "

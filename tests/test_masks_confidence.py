@@ -96,6 +96,28 @@ def test_jump_and_loss_rules():
     assert hl.predicted[3, 0] == 0.0 and hl.stretches["lost"][0] == [(2, 3)]
 
 
+def test_health_fit_holds_each_cue_to_its_sign():
+    """J made of area and edges only, with trust a noisy copy of the area's error: an unconstrained fit gives trust a
+    negative weight (less flow agreement, better mask), the signed fit leaves it out and recovers the rest."""
+    rng = np.random.default_rng(0)
+    n = 30
+    f = np.zeros((n, len(H.FEATURES)))
+    f[:, 0] = rng.uniform(0.5, 1.0, n)                         # area
+    f[:, 3] = rng.uniform(0.8, 1.2, n)                         # edges
+    f[:, 2] = rng.uniform(0.2, 1.0, n)                         # thin (no effect)
+    j = 0.6 * f[:, 0] + 0.2 * f[:, 3] + 0.05
+    f[:, 1] = 1.5 - f[:, 0] + 0.05 * rng.normal(size=n)        # trust: falls where the area rises
+    f[:, 4], f[:, 5] = 0.5, 1.0                                # agree, two_sided: constant
+    j = j - 0.1 * (f[:, 1] - f[:, 1].mean())                   # ... and the truth leans on it the wrong way
+    free = np.linalg.lstsq(np.c_[f[:, :len(H.MODEL)], np.ones(n)], j, rcond=None)[0]
+    assert free[1] < -0.05                                     # the wrong-signed rule an unconstrained fit learns
+    w = H.fit(f, j, ridge=0.0)
+    assert w[1] == 0.0 and w[2] <= 0.0 and np.all(w[[0, 3]] > 0), w
+    assert abs(w[3] - 0.2) < 0.05 and w[0] > 0.6, w             # area takes trust's share, edges are recovered
+    pred = H.predict(f, w)
+    assert np.abs(pred - j).mean() < 0.02, np.abs(pred - j).mean()
+
+
 def test_fine_share_counts_the_parts_an_opening_removes():
     m = np.zeros((96, 128), np.uint8)
     cv2.circle(m, (40, 60), 20, 1, -1)

@@ -207,6 +207,7 @@ def loo_warning(runs: list[dict]) -> dict:
     the default setting ("ours") and, where other variants ran, for every setting together."""
     davis = [r for r in runs if r["data"] != "synth" and r["setting"] in ("first", "every10")]
     train = davis
+
     def inputs(r):
         """Per object: (features (n, F), area, ref area, expected, keyframe, J per frame)."""
         key = np.array(r["_frames"]["key"])

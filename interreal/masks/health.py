@@ -14,8 +14,8 @@ is compared with what the keyframes say the object looks like, with cues that ho
 - agree, two_sided: IoU of the forward and backward chains where both exist.
 A linear model maps them to a predicted J per frame, so a sequence's predicted J is the mean of its frames';
 the weights were fit (ridge, each cue held to its sign) on the ten DAVIS-2016 sequences in ../shared/data, both
-protocols, three settings of the stage, sequence by sequence: `recipes/bench_masks.py` refits them leave-one-sequence-out and reports how well the warning
-predicts a mean J under 0.7 on sequences it did not see. Also recorded, for the states and the report:
+protocols, three settings of the stage, sequence by sequence: `recipes/bench_masks.py` refits them
+leave-one-sequence-out and reports how well the warning predicts a mean J under 0.7 on sequences it did not see. Also recorded, for the states and the report:
 appearance (the mask's colours under the nearest keyframe's colour model, relative to the keyframe), reach
 (view motion from the nearest keyframe, image widths) and jump (change of area or centroid since the previous
 frame, in units of a doubling or of half the object's size).
@@ -247,13 +247,13 @@ def fit(means: np.ndarray, j: np.ndarray, ridge: float = RIDGE) -> np.ndarray:
     each weight held to its cue's sign (`SIGNS`; a cue fit against its sign is left out and the rest refit).
 
     One row per sequence (and protocol), not per frame: the warning is about sequences, and a long sequence
-    must not outweigh the others. The signs: with twenty rows the cues are collinear (trust and agreement both
-    fall where an object deforms), and an unconstrained fit gave flow trust a negative weight, a rule ("the less
-    the flow agrees with itself, the better the mask") that explains one benchmark sequence and no new footage.
+    must not outweigh the others. The signs: over a few dozen rows the cues are collinear (trust and agreement
+    both fall where an object deforms), and an unconstrained fit on the default setting's 20 runs gave flow trust a
+    negative weight, a rule ("the less the flow agrees with itself, the better the mask") that fits one benchmark
+    and no new footage.
     """
     x = np.concatenate([means[:, :len(MODEL)], np.ones((len(means), 1))], 1)
     used = np.ones(x.shape[1], bool)
-    w = np.zeros(x.shape[1])
     while True:
         xs = x[:, used]
         reg = ridge * np.eye(xs.shape[1])

@@ -318,3 +318,73 @@ def test_grow_takes_the_keyframe_colours_near_each_pixel():
     assert near[top, 0].min() > 0.8 and np.allclose(near[shadow], soft[shadow])
     far = prop._grow(soft, st, fits, model, bins, 0.8)
     assert far[shadow, 0].min() > 0.8                        # the global histogram takes the shadow
+
+
+def test_grow_between_keyframes_takes_only_pixels_no_keyframe_labelled():
+    """Between two keyframes a chain's pixel tracked from its keyframe keeps the keyframe's label (that keyframe
+    said background there: a car's shadow it already saw); a pixel the chain knows nothing of (it came into view, or
+    from outside the keyframe's annotation) grows as on the one-sided chains. `known` is the chain's trust times
+    'seen' (`advance`'s acc)."""
+    w, h = 160, 120
+    img, lab = _keyframe((220, 40, 40))
+    key_soft, known_key = anchor_soft(lab, 1, (w, h))
+    model = ColourModel.fit(img, key_soft, known_key, AppearanceConfig())
+    prop = _propagator(w, h)
+    band = max(1, round(0.01 * w))
+    obj = np.zeros((h, w), bool)
+    obj[40:80, 60:100] = True
+    missed = np.zeros((h, w), bool)
+    missed[40:80, 100:100 + band] = True       # red, moves with the object
+    frame = np.full((h, w, 3), (90, 120, 90), np.uint8)
+    frame[obj | missed] = (220, 40, 40)
+    soft, st = _grow_step(prop, obj, obj | missed)
+    bins = quantize(frame, model.cfg.bins)
+    known = np.zeros((h, w), np.float32)
+    known[40:60] = 1.0                         # the top half of the strip was tracked from a keyframe's background
+    out = prop._grow(soft, st, prop._plane_fits(soft, st), model, bins, 0.8, known=known)
+    top, bottom = missed.copy(), missed.copy()
+    top[60:], bottom[:60] = False, False
+    assert np.allclose(out[top], soft[top])                           # the keyframe's word stands
+    assert out[bottom, 0].min() > 0.8, out[bottom, 0].min()           # unknown: grows (0.02 -> 0.804)
+    assert np.allclose(out.sum(-1), 1.0, atol=1e-5)
+
+
+def _emerging_scene(n: int = 13, w: int = 240, h: int = 120) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """A red textured object sliding right 5 px a frame out from behind a static grey occluder (x 30-60), so a
+    new strip of it comes into view every frame; at the last three frames a second, nearer surface hides the
+    strip where it came out (x 60-150): neither keyframe (first, last) shows that strip labelled."""
+    rng = np.random.default_rng(0)
+
+    def noise(mean, width):
+        return cv2.GaussianBlur(np.clip(rng.normal(mean, 40, (h, width, 3)), 0, 255).astype(np.uint8), (3, 3), 0)
+
+    bg, tex, occ = noise((90, 120, 90), w), noise((210, 50, 40), w), noise((150, 150, 160), w)
+    images, truths = [], []
+    for t in range(n):
+        img, lab = bg.copy(), np.zeros((h, w), np.uint8)
+        x0 = 20 + 5 * t
+        xs = np.arange(x0, x0 + 50)
+        img[40:80, xs] = tex[40:80, xs - x0]
+        lab[40:80, xs] = 1
+        img[:, 30:60], lab[:, 30:60] = occ[:, 30:60], 0
+        if t >= n - 3:
+            img[:, 60:150], lab[:, 60:150] = occ[:, 60:150], 0
+        images.append(img)
+        truths.append(lab)
+    return images, truths
+
+
+def test_grow_between_keyframes_takes_a_strip_neither_keyframe_shows():
+    """The object's strip that comes into view between two keyframes, and is hidden again at the second, is new
+    to both chains; growth on the chains between keyframes (`TrackConfig.grow_between`) takes it. Measured: J over
+    frames 4-8 0.562 without, 0.606 with; no frame worse. (Off by default: `TrackConfig.grow_between`.)"""
+    images, truths = _emerging_scene()
+    n = len(images)
+    j = {}
+    for grow in (0.0, 0.8):
+        prop = Propagator(lambda i: images[i], n, (240, 120), 1, TrackConfig(prefetch=0, grow_between=grow))
+        out = {r.pos: r.labels for r in prop.run({0: truths[0], n - 1: truths[n - 1]})}
+        j[grow] = np.array([((out[t] == 1) & (truths[t] == 1)).sum() / ((out[t] == 1) | (truths[t] == 1)).sum()
+                            for t in range(1, 9)])
+    assert j[0.8][3:].mean() > j[0.0][3:].mean() + 0.025, j
+    assert np.all(j[0.8] >= j[0.0] - 0.005), j

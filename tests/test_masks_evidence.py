@@ -11,6 +11,7 @@ from interreal.masks.appearance import AppearanceConfig, ColourModel, heldout_in
 from interreal.masks.flow import Step
 from interreal.masks.soft import anchor_soft
 from interreal.masks.track import Propagator, TrackConfig
+from test_masks import iou
 
 cv2.setNumThreads(2)
 
@@ -384,7 +385,6 @@ def test_grow_between_keyframes_takes_a_strip_neither_keyframe_shows():
     for grow in (0.0, 0.8):
         prop = Propagator(lambda i: images[i], n, (240, 120), 1, TrackConfig(prefetch=0, grow_between=grow))
         out = {r.pos: r.labels for r in prop.run({0: truths[0], n - 1: truths[n - 1]})}
-        j[grow] = np.array([((out[t] == 1) & (truths[t] == 1)).sum() / ((out[t] == 1) | (truths[t] == 1)).sum()
-                            for t in range(1, 9)])
+        j[grow] = np.array([iou(out[t] == 1, truths[t] == 1) for t in range(1, 9)])
     assert j[0.8][3:].mean() > j[0.0][3:].mean() + 0.025, j
     assert np.all(j[0.8] >= j[0.0] - 0.005), j

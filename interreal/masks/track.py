@@ -646,8 +646,7 @@ class Propagator:
             if info > app.weight:
                 model = model.reweighted(info)
         watch = self._watch(k, start, one_sided=True)
-        local = LocalColour.fit(self.cache.work(k), start[0], start[1]) \
-            if model is not None and self.cfg.grow > 0 and self.cfg.local_colour else None
+        local = self._local(k, start, model, self.cfg.grow)
         prev, scale = k, np.ones(self.k)
         held: FrameResult | None = None  # the previous frame, its full-size labels still being made
         for i, t in enumerate(order):

@@ -127,6 +127,8 @@ def _reader_went_away() -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from .allocator import keep_freed_blocks
+    keep_freed_blocks()  # the stages churn through image-sized temporaries (see interreal.allocator)
     return run_cli(PROG, COMMANDS, EPILOG, argv, (InterRealError,))
 
 

@@ -433,6 +433,30 @@ def test_prefetch_thread_gives_identical_masks(tmp_path):
         assert np.array_equal(a, b)
 
 
+def test_steps_made_ahead_on_the_flow_worker_are_the_inline_ones():
+    """The worker makes each planned direction's Step beside the flows; `step` takes that one (once) and it equals
+    the Step made on the chain's thread; a direction not planned is made there."""
+    from interreal.masks.track import Propagator, TrackConfig
+
+    images, _ = toy_sequence(n=4)
+    prop = Propagator(lambda i: images[i], 4, (images[0].shape[1], images[0].shape[0]), 2, TrackConfig(prefetch=2))
+    inline = Propagator(lambda i: images[i], 4, (images[0].shape[1], images[0].shape[0]), 2, TrackConfig(prefetch=0))
+    try:
+        prop.plan([0, 1], {0: ((0, 1),), 1: ((2, 1),)})
+        prop.pair(0), prop.pair(1)
+        assert set(prop._steps) == {(0, 1), (2, 1)}
+        for src, dst in ((0, 1), (2, 1), (1, 0)):
+            got, want = prop.step(src, dst), inline.step(src, dst)
+            for name in ("map_x", "map_y", "trust"):
+                assert np.array_equal(getattr(got, name), getattr(want, name)), (src, dst, name)
+        assert not prop._steps  # each taken once
+        prop.release(pair=0)
+        assert 0 not in prop._flows
+    finally:
+        prop.close()
+        inline.close()
+
+
 def test_filter_objects_and_argmax_match_the_plain_versions():
     from interreal.masks.track import _argmax_channels, _argmax_labels, filter_objects
 

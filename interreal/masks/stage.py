@@ -143,15 +143,21 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
                                                  res.labels, n_obj, dil))
                     while pending and pending[0].done():
                         pending.popleft().result()  # a failed write stops the stage here, not at the end
-                    cues.add(res, prop, key_refs)
+                    # the cues and the preview tiles go to the writer too: the chains' thread is the one the
+                    # others wait for (first frame only: 10 % of its time was these)
+                    work = None if res.keyframe else prop.cache.work(res.pos)
+                    pending.append(writer.submit(cues.add, res, work, key_refs))
                     if preview != "none":
-                        image = prop.cache.peek(res.pos)
-                        image = load(res.pos) if image is None else image
+                        full = prop.cache.peek(res.pos)
                         cap = f"{fids[res.pos]}{' key' if res.keyframe else ''}"
                         if preview in ("sheet", "both") and res.pos in sheet_pos:
-                            tiles[res.pos] = thumb(image, res.labels, 240, cap, ignore=grey)
+                            pending.append(writer.submit(_tile, tiles, res.pos, full, load, res.labels, 240, cap,
+                                                         grey))
                         if preview in ("video", "both"):
-                            video[res.pos] = thumb(image, res.labels, vid_w, cap, ignore=grey)
+                            # the work image is the video's size (WORK_LONG_SIDE = vid_w): no resize of the full one
+                            src = work if work is not None and work.shape[1] == vid_w else full
+                            pending.append(writer.submit(_tile, video, res.pos, src, load, res.labels, vid_w, cap,
+                                                         grey))
                     t_write += time.perf_counter() - tw
                     c_write += time.process_time() - cw
                     bar.update(1)
@@ -290,7 +296,8 @@ class _Cues:
         self.thin = np.zeros((n, k))
         self.moved = np.full((n, k), np.nan)  # area share the object's own motion predicts (one-sided chains)
 
-    def add(self, res, prop: Propagator, key_refs: dict[int, H.KeyRef]) -> None:
+    def add(self, res, work: np.ndarray | None, key_refs: dict[int, H.KeyRef]) -> None:
+        """One frame's cues; `work`: its work-size image (None for a keyframe). Runs on the writer thread."""
         pos = res.pos
         if res.keyframe:
             self.area[pos], self.centroid[pos], self.thin[pos] = key_refs[pos].area, key_refs[pos].centroid, \
@@ -299,8 +306,7 @@ class _Cues:
         labels = argmax_labels(res.soft)
         near = min(key_refs, key=lambda k: abs(k - pos))
         around = [k for k in key_refs if k < pos][-1:] + [k for k in key_refs if k > pos][:1]  # keys are sorted
-        cue, self.centroid[pos] = H.frame_cues(labels, prop.cache.work(pos), key_refs[near],
-                                               [key_refs[k] for k in around])
+        cue, self.centroid[pos] = H.frame_cues(labels, work, key_refs[near], [key_refs[k] for k in around])
         self.area[pos], self.appearance[pos], self.edges[pos] = cue[:, 0], cue[:, 1], cue[:, 2]
         self.thin[pos] = key_refs[near].thin
         if res.scale is not None:  # a one-sided chain: its keyframe is the nearest
@@ -312,6 +318,12 @@ class _Cues:
                 f, b = res.fwd == k + 1, res.bwd == k + 1
                 u = int((f | b).sum())
                 self.agree[pos, k] = (f & b).sum() / u if u else 1.0
+
+
+def _tile(into: dict[int, np.ndarray], pos: int, image: np.ndarray | None, load, labels: np.ndarray, width: int,
+          caption: str, grey: int | None) -> None:
+    """A preview tile of frame `pos` into `into` (the writer thread); `image` None: the frame left the cache."""
+    into[pos] = thumb(load(pos) if image is None else image, labels, width, caption, ignore=grey)
 
 
 def _fine_shares(anchors: dict[int, np.ndarray], n_obj: int, radius: int) -> tuple[np.ndarray, list[int | None]]:

@@ -16,6 +16,7 @@ import sys
 from typing import Callable, Sequence
 
 from . import __version__
+from .allocator import keep_freed_blocks
 from .errors import InterRealError
 
 PROG = "interreal"
@@ -127,7 +128,6 @@ def _reader_went_away() -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from .allocator import keep_freed_blocks
     keep_freed_blocks()  # the stages churn through image-sized temporaries (see interreal.allocator)
     return run_cli(PROG, COMMANDS, EPILOG, argv, (InterRealError,))
 

@@ -457,6 +457,31 @@ def test_steps_made_ahead_on_the_flow_worker_are_the_inline_ones():
         inline.close()
 
 
+def test_each_keyframes_colour_model_is_fit_once_for_all_its_chains(tmp_path, monkeypatch):
+    """The chain that ends a gap at a keyframe and the one that starts the next gap from it (on another thread) share
+    one fit of its colour model; the masks are those of fitting it per chain (the same inputs)."""
+    from interreal.masks import appearance
+    from interreal.masks.stage import make_config
+
+    images, truths = toy_sequence(n=14)
+    ds = make_ds(tmp_path, images)
+    keys = write_keys(tmp_path / "keys", truths, [2, 6, 10], ["red disk", "blue square"])
+    fit = appearance.ColourModel.fit.__func__
+    seen: list[tuple[int, int]] = []
+
+    def counting(cls, image, soft, known, cfg):
+        seen.append((id(soft), id(known)))  # a chain's start passes its keyframe's anchor arrays themselves
+        return fit(cls, image, soft, known, cfg)
+
+    monkeypatch.setattr(appearance.ColourModel, "fit", classmethod(counting))
+    propagate(ds, keys, config=dataclasses.replace(make_config(), prefetch=3), preview="none", suggest=0,
+              progress=False)
+    # 6 chain starts (before 2, 2->6 both ways, 6->10 both ways, after 10) on 3 keyframes: 3 fits; health's
+    # references and the one-sided chains' held-out folds fit on arrays of their own
+    assert len(seen) == len(set(seen)), "a keyframe's model was fit twice"
+    assert len(set(seen)) >= 3
+
+
 def test_filter_objects_and_argmax_match_the_plain_versions():
     from interreal.masks.track import _argmax_channels, _argmax_labels, filter_objects
 

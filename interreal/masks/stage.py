@@ -117,10 +117,7 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
         dil = sfm_dilate if sfm_dilate is not None else max(2, round(0.006 * float(np.hypot(*size))))
         prop = Propagator(load, len(fids), size, n_track, cfg)
         ref = {p: np.array([(m == k + 1).mean() for k in range(n_track)]) for p, m in anchors.items()}
-        key_refs = {p: H.key_reference(cv2.resize(load(p), prop.wsize, interpolation=cv2.INTER_AREA),
-                                       _work_labels(m, prop.wsize), n_track) for p, m in sorted(anchors.items())}
         fine_r = H.fine_radius(size[0], prop.wsize[0])
-        fine, fine_key = _fine_shares(anchors, n_obj, fine_r)
         cues = _Cues(len(fids), n_track)
         clear_transients(ds)  # this run's ignore class (or none) replaces any earlier transient layer
         transient_share = np.zeros(len(fids))
@@ -135,6 +132,10 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
             bar = tqdm(total=len(fids), desc="masks", unit="frame", disable=not progress)
             # files are written on a thread of their own: encoding and syncing them overlaps the chains
             with ThreadPoolExecutor(1, thread_name_prefix="write") as writer:
+                # what health compares each frame with, made on the writer (first in its queue, so ready for every
+                # frame's cues) while the chains start: a decode and a colour fit per keyframe, off their path
+                key_refs = writer.submit(_key_refs, anchors, load, prop.wsize, n_track)
+                fine_shares = writer.submit(_fine_shares, anchors, n_obj, fine_r)
                 pending: deque[Future] = deque()
                 for res in prop.run(anchors):
                     tw, cw = time.perf_counter(), time.process_time()
@@ -165,6 +166,7 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
                 tw = time.perf_counter()
                 for done in pending:
                     done.result()
+                fine, fine_key = fine_shares.result()
                 t_write += time.perf_counter() - tw
             compute = time.perf_counter() - t_start - t_write
             cpu = time.process_time() - c_start - c_write
@@ -296,8 +298,10 @@ class _Cues:
         self.thin = np.zeros((n, k))
         self.moved = np.full((n, k), np.nan)  # area share the object's own motion predicts (one-sided chains)
 
-    def add(self, res, work: np.ndarray | None, key_refs: dict[int, H.KeyRef]) -> None:
-        """One frame's cues; `work`: its work-size image (None for a keyframe). Runs on the writer thread."""
+    def add(self, res, work: np.ndarray | None, refs: Future) -> None:
+        """One frame's cues; `work`: its work-size image (None for a keyframe); `refs`: `_key_refs`. Runs on the
+        writer thread."""
+        key_refs: dict[int, H.KeyRef] = refs.result()
         pos = res.pos
         if res.keyframe:
             self.area[pos], self.centroid[pos], self.thin[pos] = key_refs[pos].area, key_refs[pos].centroid, \
@@ -318,6 +322,12 @@ class _Cues:
                 f, b = res.fwd == k + 1, res.bwd == k + 1
                 u = int((f | b).sum())
                 self.agree[pos, k] = (f & b).sum() / u if u else 1.0
+
+
+def _key_refs(anchors: dict[int, np.ndarray], load, wsize: tuple[int, int], n_track: int) -> dict[int, H.KeyRef]:
+    """Each keyframe's `health.KeyRef` at the work size, by position."""
+    return {p: H.key_reference(cv2.resize(load(p), wsize, interpolation=cv2.INTER_AREA), _work_labels(m, wsize),
+                               n_track) for p, m in sorted(anchors.items())}
 
 
 def _tile(into: dict[int, np.ndarray], pos: int, image: np.ndarray | None, load, labels: np.ndarray, width: int,

@@ -482,6 +482,37 @@ def test_each_keyframes_colour_model_is_fit_once_for_all_its_chains(tmp_path, mo
     assert len(set(seen)) >= 3
 
 
+def test_a_long_gap_makes_only_its_forward_steps_ahead(monkeypatch):
+    """Backward Steps of a gap wait in memory for its backward chain: past LONG_GAP frames only the forward ones
+    are made on the worker (the rest on the chain's thread), and the masks are the same either way."""
+    from interreal.masks import track
+    from interreal.masks.track import Propagator, TrackConfig
+
+    n = track.LONG_GAP + 6
+    rng = np.random.default_rng(0)
+    base = rng.integers(0, 255, (30, 40, 3), np.uint8)
+    images = [np.roll(base, i // 4, axis=1) for i in range(n)]
+    anchor = np.zeros((30, 40), np.uint8)
+    anchor[10:20, 10:20] = 1
+    plans: list[dict] = []
+    plan = Propagator.plan
+    def recording(self, pairs, dirs=None):
+        plans.append(dirs)
+        return plan(self, pairs, dirs)
+
+    monkeypatch.setattr(Propagator, "plan", recording)
+    out = []
+    for long_gap in (track.LONG_GAP, n):  # the gap of n - 3 frames: long, then (the limit raised) short
+        monkeypatch.setattr(track, "LONG_GAP", long_gap)
+        prop = Propagator(lambda i: images[i], n, (40, 30), 1, TrackConfig(prefetch=3))
+        out.append([r.labels for r in sorted(prop.run({1: anchor, n - 2: anchor}), key=lambda r: r.pos)])
+    long_dirs, short_dirs = [d for d in plans if d]  # close() plans nothing
+    assert long_dirs[5] == ((5, 6),) and short_dirs[5] == ((5, 6), (6, 5))
+    assert long_dirs[0] == short_dirs[0] == ((1, 0),)  # before the first keyframe: backward only
+    for a, b in zip(*out):
+        assert np.array_equal(a, b)
+
+
 def test_filter_objects_and_argmax_match_the_plain_versions():
     from interreal.masks.track import _argmax_channels, _argmax_labels, filter_objects
 

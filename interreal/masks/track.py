@@ -61,6 +61,9 @@ CUT_BAND = 0.05
 CUT_COLOUR = 2.0
 CUT_SIDE = 160       # ... and the cut runs on the window shrunk to this long side (px): 0.6 of its time at full size
 RANSAC_ITERS = int(np.ceil(np.log(1 - 0.995) / np.log(1 - MIN_INLIERS ** 4)))
+# frames between two keyframes over which a gap's stored chain is kept at half precision and only its forward
+# Steps are made ahead (memory)
+LONG_GAP = 100
 
 
 @dataclass(frozen=True)
@@ -588,7 +591,11 @@ class Propagator:
         # every flow pair in the order the chains below ask for it: the worker runs ahead across chains and gaps
         before, between = range(keys[0] - 1, -1, -1), [t for a, b in zip(keys[:-1], keys[1:]) for t in range(a, b)]
         after = range(keys[-1], self.n - 1)
-        dirs = {t: ((t + 1, t),) for t in before} | {t: ((t, t + 1), (t + 1, t)) for t in between} | \
+        # a gap's backward Steps wait for its backward chain, made while the forward chain passes (1.5 MB each at
+        # 480 px): on a long gap only the forward ones are made ahead, as the stored chain turns float16 there
+        long_gap = {t for a, b in zip(keys[:-1], keys[1:]) if b - a > LONG_GAP for t in range(a, b)}
+        dirs = {t: ((t + 1, t),) for t in before} | \
+            {t: ((t, t + 1),) if t in long_gap else ((t, t + 1), (t + 1, t)) for t in between} | \
             {t: ((t, t + 1),) for t in after}
         self.plan([*before, *between, *after], dirs)
         soft0 = {k: anchor_soft(anchors[k], self.k, self.wsize) for k in keys}
@@ -711,7 +718,7 @@ class Propagator:
         soft, acc, model = self._start(a, start_a)
         watch = self._watch(a, start_a, one_sided=False)
         local = self._local(a, start_a, model, self.cfg.grow_between)
-        store = np.float32 if b - a <= 100 else np.float16  # long gaps: halve the memory of the stored chain
+        store = np.float32 if b - a <= LONG_GAP else np.float16  # long gaps: halve the memory of the stored chain
         for t in range(a + 1, b):
             soft, acc, trust, _ = self.advance(soft, acc, t - 1, t, model, None, self.cfg.grow_between, local, False)
             soft = self._recheck(watch, soft, t, t - 1)

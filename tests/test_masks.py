@@ -459,7 +459,7 @@ def test_steps_made_ahead_on_the_flow_worker_are_the_inline_ones():
 
 def test_each_keyframes_colour_model_is_fit_once_for_all_its_chains(tmp_path, monkeypatch):
     """The chain that ends a gap at a keyframe and the one that starts the next gap from it (on another thread) share
-    one fit of its colour model; the masks are those of fitting it per chain (the same inputs)."""
+    one fit of its colour model (the same inputs: test_prefetch_thread_gives_identical_masks checks the masks)."""
     from interreal.masks import appearance
     from interreal.masks.stage import make_config
 
@@ -496,6 +496,7 @@ def test_a_long_gap_makes_only_its_forward_steps_ahead(monkeypatch):
     anchor[10:20, 10:20] = 1
     plans: list[dict] = []
     plan = Propagator.plan
+
     def recording(self, pairs, dirs=None):
         plans.append(dirs)
         return plan(self, pairs, dirs)

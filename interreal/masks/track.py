@@ -198,9 +198,9 @@ class Propagator:
                 self._pump()
             return self._flows[t]
 
-    def _store(self, t: int, flows, images, motion: float, steps: dict | None = None) -> None:
+    def _store(self, t: int, flows, images, motion: float, steps: dict) -> None:
         self._flows[t] = flows
-        self._steps.update(steps or {})
+        self._steps.update(steps)
         self.motion[t] = motion
         for pos, (full, work) in images.items():
             self.cache.put(pos, full, work)

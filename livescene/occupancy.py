@@ -264,9 +264,10 @@ def _max_over_k(dens: _Densities, lo: torch.Tensor, hi: torch.Tensor, shape: tup
 
 @torch.no_grad()
 def build_grid(model: LiveSceneModel, box: tuple[torch.Tensor, torch.Tensor], step: int = 0,
-               resolution: int | None = None) -> OccupancyGrid:
-    """The occupancy grid of `model` over the scene box (lo, hi) (world units), for the checkpoint at `step`."""
-    t0 = time.perf_counter()
+               resolution: int | None = None, clock: Callable[[], float] = time.perf_counter) -> OccupancyGrid:
+    """The occupancy grid of `model` over the scene box (lo, hi) (world units), for the checkpoint at `step`
+    (`clock` times the build: the trainer passes its own)."""
+    t0 = clock()
     was_training = model.training
     model.eval()
     lo, hi = box[0].float(), box[1].float()
@@ -293,17 +294,18 @@ def build_grid(model: LiveSceneModel, box: tuple[torch.Tensor, torch.Tensor], st
                         reach=_dilate(reach.float()) > 0 if rigid else None)
     out.info = {"shape": list(shape), "field_reads": dens.reads, "swept_states": swept,
                 "k_nodes": len(k_nodes) if free else 0, "min_threshold": floor,
-                "build_s": round(time.perf_counter() - t0, 3), "occupied": round(out.occupied_fraction(), 4)}
+                "build_s": round(clock() - t0, 3), "occupied": round(out.occupied_fraction(), 4)}
     return out
 
 
-def build_cost(model: LiveSceneModel, box: tuple[torch.Tensor, torch.Tensor], shrink: int = 4) -> float:
+def build_cost(model: LiveSceneModel, box: tuple[torch.Tensor, torch.Tensor], shrink: int = 4,
+               clock: Callable[[], float] = time.perf_counter) -> float:
     """Seconds `build_grid` will take, from a build at 1/`shrink` of the resolution scaled by the cell count (the
     work is a field read per corner and state): a time-limited training reserves it before its last step."""
     lo, hi = box[0].float(), box[1].float()
     full = default_resolution(model)
-    build_grid(model, box, resolution=MIN_RES)  # warm: a cold first read (CUDA's kernels loading) would be scaled up
-    small = build_grid(model, box, resolution=max(MIN_RES, full // shrink))
+    build_grid(model, box, resolution=MIN_RES, clock=clock)  # warm: a cold first read (CUDA's kernels loading) would be scaled up
+    small = build_grid(model, box, resolution=max(MIN_RES, full // shrink), clock=clock)
     cells = [math.prod(grid_shape(lo, hi, res)) for res in (full, max(MIN_RES, full // shrink))]
     return small.info["build_s"] * cells[0] / cells[1]
 

@@ -22,7 +22,7 @@ import shutil
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -108,8 +108,12 @@ def lr_factor(step: int, cfg: TrainConfig, time_frac: float = 0.0) -> float:
 
 class Trainer:
     def __init__(self, dataset: str | Path, run_dir: str | Path, cfg: TrainConfig, device: str = "auto",
-                 resume: bool = False, max_minutes: float = 0.0, show_progress: bool = True):
-        self._t_init = time.perf_counter()
+                 resume: bool = False, max_minutes: float = 0.0, show_progress: bool = True,
+                 clock: Callable[[], float] = time.perf_counter):
+        # every duration the time budget plans with is read from `clock` (tests inject a fake one: a busy machine
+        # must not change what they check)
+        self.clock = clock
+        self._t_init = clock()
         self.run_dir = Path(run_dir)
         self.device = select_device(device)
         self.max_minutes = max_minutes
@@ -206,9 +210,9 @@ class Trainer:
         self.eval_cursor = int(meta.get("eval_cursor", 0))
 
     def save_checkpoint(self) -> Path:
-        t0 = time.perf_counter()
+        t0 = self.clock()
         path = write_checkpoint(self.run_dir, self.step, self._state(), self.cfg.keep_checkpoints)
-        self._ckpt_s = time.perf_counter() - t0
+        self._ckpt_s = self.clock() - t0
         return path
 
     def _rollback(self, reason: str) -> None:
@@ -349,10 +353,10 @@ class Trainer:
 
     def _timed_psnr(self, i: int) -> float:
         """heldout_psnr at `eval_max_side`, recording the render speed that `end_reserve` plans with."""
-        t0 = time.perf_counter()
+        t0 = self.clock()
         value = self.heldout_psnr(i, self.cfg.eval_max_side)
         small = within_side(self.views.intrinsics[i], self.cfg.eval_max_side)
-        self._eval_s_per_px = (time.perf_counter() - t0) / (small.w * small.h)
+        self._eval_s_per_px = (self.clock() - t0) / (small.w * small.h)
         return value
 
     def final_eval(self) -> dict[str, Any]:
@@ -395,16 +399,16 @@ class Trainer:
         if self.step == 0:
             self.save_checkpoint()
         if self.max_minutes and not self._grid_s:
-            self._grid_s = build_cost(self.model, self.box)
+            self._grid_s = build_cost(self.model, self.box, clock=self.clock)
         if self.max_minutes and not self._eval_s_per_px:  # a time limit needs the final evaluation's cost up front
             first = self.quick_frame
             self.heldout_psnr(first, WARM_SIDE)  # untimed: on CUDA the first render loads kernels for seconds
             self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2),
                        "psnr": self._timed_psnr(first), "frame": int(first)})
         if self._t_init is not None:  # loading, setting up and that first render, once per process
-            self.overhead += time.perf_counter() - self._t_init
+            self.overhead += self.clock() - self._t_init
             self._t_init = None
-        t_start = time.perf_counter() - self.elapsed
+        t_start = self.clock() - self.elapsed
         overhead_start = self.overhead  # evaluations and checkpoints in the loop add to it; elapsed leaves them out
         acc: dict[str, list[float]] = {}
         bar = tqdm(total=cfg.steps, initial=self.step, desc="train", disable=not self.show_progress,
@@ -413,12 +417,12 @@ class Trainer:
         self.model.train()
         trial = ThreadTrial(os.cpu_count() or 1) if getattr(self, "measure_threads", False) else None
         while self.step < cfg.steps:
-            t_step = time.perf_counter()
+            t_step = self.clock()
             if trial is not None:
                 trial.before_step()
             info = self.train_step()
             if trial is not None:
-                trial.after_step(time.perf_counter() - t_step)
+                trial.after_step(self.clock() - t_step)
                 if trial.done:
                     bar.write(f"livescene train: {trial.summary()}")
                     self.threads_measured = {"kept": trial.chosen, "seconds_per_step": trial.medians}
@@ -428,7 +432,7 @@ class Trainer:
                 continue
             for k, v in info.items():
                 acc.setdefault(k, []).append(v)
-            self.elapsed = time.perf_counter() - t_start - (self.overhead - overhead_start)
+            self.elapsed = self.clock() - t_start - (self.overhead - overhead_start)
             bar.update(1)
             if self.step % cfg.log_every == 0 or self.step == cfg.steps:
                 rec = {k: float(np.mean(v)) for k, v in acc.items()}
@@ -438,25 +442,25 @@ class Trainer:
                 self._log(last)
                 bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr']:.2f}")
             if cfg.eval_every and self.step % cfg.eval_every == 0 and self.step < cfg.steps:
-                t0 = time.perf_counter()
+                t0 = self.clock()
                 ev = self.quick_eval()
                 self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2), **ev})
                 which = "held-out" if self.views.held_out else "training-frame (none held out)"
                 bar.write(f"step {self.step}: {which} PSNR {ev['psnr']:.2f} dB (frame position {ev['frame']}, the "
                           f"same every time)")
-                self.overhead += time.perf_counter() - t0
+                self.overhead += self.clock() - t0
             if cfg.ckpt_every and self.step % cfg.ckpt_every == 0:
-                t0 = time.perf_counter()
+                t0 = self.clock()
                 self.save_checkpoint()
-                self.overhead += time.perf_counter() - t0
+                self.overhead += self.clock() - t0
             if self.max_minutes and self.elapsed >= self.train_budget():
                 stop_reason = "max-minutes"
                 break
         bar.close()
-        t0 = time.perf_counter()
+        t0 = self.clock()
         # once, for the final model: saved with its checkpoint, renders skip air
-        self.occupancy = build_grid(self.model, self.box, self.step)
-        self.overhead += time.perf_counter() - t0
+        self.occupancy = build_grid(self.model, self.box, self.step, clock=self.clock)
+        self.overhead += self.clock() - t0
         self.save_checkpoint()
         final = self.final_eval()
         self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2), "final": True, **final})

@@ -82,6 +82,21 @@ def tiny_dataset(tmp_path: Path) -> Path:
     return make_tiny_dataset(tmp_path / "ds")
 
 
+class FakeClock:
+    """A monotonic clock a test moves itself: each read adds `tick` seconds, `advance` adds a piece of work's cost.
+    Injected where code plans from measured durations, so a busy machine cannot change what the test checks."""
+
+    def __init__(self, tick: float = 0.0):
+        self.t, self.tick = 1000.0, tick
+
+    def __call__(self) -> float:
+        self.t += self.tick
+        return self.t
+
+    def advance(self, seconds: float) -> None:
+        self.t += seconds
+
+
 CHROMIUM = "/usr/bin/chromium"  # Debian's: Playwright cannot download its own browser here
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
         "--disable-sync", "--no-first-run"]
@@ -91,7 +106,7 @@ ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--d
 def browser():
     if not Path(CHROMIUM).exists():
         pytest.fail(f"{CHROMIUM} is missing: the browser tests need Debian's Chromium: apt-get install chromium "
-                    "(.ci/run installs it)")
+                    "(bash .ci/setup installs it when run as root)")
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:

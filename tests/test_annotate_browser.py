@@ -61,7 +61,7 @@ def server(tmp_path):
 
 
 def ready(page) -> None:
-    page.wait_for_selector('body[data-ready="1"]', timeout=20000)
+    page.wait_for_selector('body[data-ready="1"]', timeout=120000)
 
 
 def saves(page) -> int:
@@ -85,7 +85,7 @@ def laid_out_box(page, selector: str) -> dict:
 def saved(page, before: int) -> None:
     """Wait until the page has saved an edit beyond the first `before`."""
     try:
-        page.wait_for_function(f"+(document.body.dataset.saves || 0) > {before}", timeout=20000)
+        page.wait_for_function(f"+(document.body.dataset.saves || 0) > {before}", timeout=120000)
     except Exception as exc:
         status, toast = page.inner_text("#save-status"), page.inner_text("#toast")
         raise AssertionError(f"the edit was not saved: status {status!r}, message {toast!r}") from exc

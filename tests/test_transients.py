@@ -356,7 +356,7 @@ def test_annotate_page_paints_ignore(browser, tmp_path):
         errors: list[str] = []
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(srv.url)
-        page.wait_for_selector('body[data-ready="1"]', timeout=20000)
+        page.wait_for_selector('body[data-ready="1"]', timeout=120000)
         page.click('.thumb[data-fid="00003"]')
         page.wait_for_function("location.hash === '#f=00003'")
         page.select_option("#object-select", "-1")
@@ -368,7 +368,7 @@ def test_annotate_page_paints_ignore(browser, tmp_path):
         page.mouse.down()
         page.mouse.move(bb["x"] + 60 * sx, bb["y"] + 60 * sy, steps=6)
         page.mouse.up()
-        page.wait_for_function(f"+(document.body.dataset.saves || 0) > {n}", timeout=20000)
+        page.wait_for_function(f"+(document.body.dataset.saves || 0) > {n}", timeout=120000)
         index = cv2.imread(str(ds / "keyframes" / "00003.png"), 0)
         assert (index[35:55, 45:55] == IGNORE).all() and (index == IGNORE).sum() < 0.15 * index.size
         grey = page.evaluate("""() => { const c = document.getElementById('overlay-canvas');

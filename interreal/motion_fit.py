@@ -6,11 +6,14 @@
   then linear in the scale, the reference pose and a point on the axis;
 - slide: the orientation stays; the positions lie on one line (scale and line found by alternating least squares).
 The kind is the hinge when the part turns clearly beyond its rotation noise *and* the angle explains the positions
-at least as well as a line does; otherwise a slide. Human state labels are eyeballed (off by 0.1-0.2), so they do
-not measure anything here: the measured displacement (angle or distance) gives every frame's state, and the labels
-only fix which end is state 0, which is 1 (snapped when they are near), and the direction. Labels that disagree
-with the measured state by more than `FLAG_TOL` are reported as likely mistakes; the motion is refused only when
-most labels disagree (the reconstruction, not the person, is then wrong).
+at least as well as a line does; otherwise a slide. Human state labels are eyeballed (off by 0.1-0.5 on real
+captures), so they do not measure anything here: the measured displacement (angle or distance) gives every frame's
+state; its two ends are states 0 and 1, and the labels only say which end is closed (and, where every label near an
+end is clearly intermediate and none says that end's state, that the video stops short of it: the scale). Labels
+that disagree with the measured state by more than `FLAG_TOL` are reported as likely mistakes, never a reason to
+drop the motion: it is used when its own evidence holds (enough trusted frames, a range above its noise, states that
+change smoothly from frame to frame, a reconstruction that does not turn with the camera). `trust_labels` restores
+the labels as the judge (a line through them calibrates, and most of them disagreeing refuses the motion).
 """
 
 from __future__ import annotations
@@ -32,8 +35,13 @@ END_SHARE = 0.05  # an end of the motion starts from the median of this share of
 END_BAND = 0.1  # ... and is the middle of the frames within this share of the span from it (where the part rests)
 SNAP = 0.2  # an end whose label fit lies within this of 0 or 1 is that state
 FLAG_TOL = 0.25  # a label further than this from the measured state is a likely mistake
-LABEL_TOL = 0.15  # the motion is refused when the labels' median disagreement exceeds this ...
+LABEL_TOL = 0.15  # with trust_labels: the motion is refused when the labels' median disagreement exceeds this ...
 MAX_FLAGGED = 1 / 3  # ... or more than this share of the labels are flagged
+END_NEAR = 0.25  # labels of one value orient the motion only when all lie within this share of the span of one end
+JUMP = FLAG_TOL  # a frame whose state leaves its neighbours' median by more than this is misregistered ...
+MAX_JUMPY = 1 / 3  # ... and a motion with more than this share of such frames is noise, not motion
+MAX_RESIDUAL = 0.25  # a motion whose positions miss the part's by more than this share of how far it moves the
+#                      part explains nothing (a reconstruction bent by a drifting scale)
 MIN_MOVE = 4.0  # a slide must move this many times its position noise (else the part did not move)
 FOLLOW = 0.6  # a part that turns this share of the camera's turn while the labels say it rests: a bad reconstruction
 REST_FRAMES = 6  # ... judged over at least this many resting frames (stretches of 3 or more)
@@ -324,6 +332,7 @@ class Calibration:
     d0: float
     rate: float
     end_states: tuple[float, float]  # the states of the low and the high end of d
+    source: str = ""  # what oriented (and scaled) it, for the report
 
 
 def _snap(s: float) -> float:
@@ -333,10 +342,11 @@ def _snap(s: float) -> float:
     return float(np.clip(s, 0.0, 1.0))
 
 
-def calibrate(d: np.ndarray, ok: np.ndarray, labels: np.ndarray, labelled: np.ndarray) -> Calibration | None:
-    """The displacement's ends (over the trusted frames) get the states a robust line through the labels gives
-    them, snapped to 0 / 1 when near; None when the labels cannot orient the motion (fewer than two distinct
-    labelled states on trusted frames, or the displacement does not vary)."""
+def calibrate_by_labels(d: np.ndarray, ok: np.ndarray, labels: np.ndarray, labelled: np.ndarray
+                        ) -> Calibration | None:
+    """`trust_labels`: the displacement's ends (over the trusted frames) get the states a robust line through the
+    labels gives them, snapped to 0 / 1 when near; None when the labels cannot orient the motion (fewer than two
+    distinct labelled states on trusted frames, or the displacement does not vary)."""
     lab = ok & labelled
     if lab.sum() < 2 or np.ptp(labels[lab]) < 2 * SNAP or not ok.any():
         return None
@@ -350,7 +360,68 @@ def calibrate(d: np.ndarray, ok: np.ndarray, labels: np.ndarray, labelled: np.nd
     if s_lo == s_hi:  # both ends snapped alike: trust the order the labels give, the span they give
         s_lo, s_hi = (0.0, 1.0) if slope > 0 else (1.0, 0.0)
     rate = (hi - lo) / (s_hi - s_lo)
-    return Calibration(lo - s_lo * rate, rate, (s_lo, s_hi))
+    return Calibration(lo - s_lo * rate, rate, (s_lo, s_hi), "labels (--trust-labels)")
+
+
+def orientation(x: np.ndarray, y: np.ndarray) -> tuple[int, str]:
+    """(+1: the high end of the displacement is open, -1: the low end, 0: cannot tell; why) from labels y at
+    positions x (F,) along the measured motion (0 at its low end, 1 at its high end).
+
+    Labels that vary orient by their trend (a robust line's slope: each may be off by 0.5, the order holds); labels
+    of one value orient only when they all lie near one end (that end gets the state they name)."""
+    if len(x) == 0:
+        return 0, "no labelled frame was measured"
+    if np.ptp(y) >= 2 * SNAP:
+        slope, _ = robust_line(x, y)
+        return (1 if slope > 0 else -1 if slope < 0 else 0), "the labels' trend"
+    v, where = float(np.median(y)), float(np.median(x))
+    if x.max() <= END_NEAR or x.min() >= 1 - END_NEAR:
+        at_high = where > 0.5
+        return (1 if at_high == (v > 0.5) else -1), f"every label says {v:g} near one end"
+    return 0, (f"every label says {v:g} but the labelled frames lie along the whole measured motion (positions "
+               f"{x.min():.2f} to {x.max():.2f} of it): label both ends")
+
+
+def end_state(x: np.ndarray, y: np.ndarray, end: float, state: float) -> tuple[float, str]:
+    """(state, how) of the measured motion's end at position `end` (0 or 1 along it) whose nominal state is
+    `state` (0 closed, 1 open): `state`, unless no trusted label says it and the labels' robust line puts that end
+    clearly short of it (a video that only opens a door half way, labelled so on purpose)."""
+    if not (np.abs(x - end) <= END_NEAR).any():
+        how = "the measured end (no label near it)"
+    else:
+        how = "labelled"
+    if (np.abs(y - state) <= SNAP).any() or len(x) < 2 or np.ptp(x) < END_NEAR:
+        return state, how
+    slope, icpt = robust_line(x, y)
+    value = float(np.clip(icpt + slope * end, 0.0, 1.0))
+    if abs(value - state) <= SNAP:
+        return state, how
+    return round(value, 3), f"the labels' line (no label says {state:g})"
+
+
+def calibrate(d: np.ndarray, ok: np.ndarray, labels: np.ndarray, labelled: np.ndarray
+              ) -> tuple[Calibration | None, str]:
+    """The measured displacement's ends (over the trusted frames) are states 0 and 1; the labels say which end is
+    which (`orientation`) and, where they never name an end's state and put it clearly short, that end's state
+    (`end_state`). (None, why) when the labels cannot orient the motion or the displacement does not vary."""
+    if not ok.any():
+        return None, "no frame was measured"
+    lo, hi = ends(d[ok])
+    if hi - lo <= 1e-12:
+        return None, "the measured displacement does not vary"
+    lab = ok & labelled
+    x, y = (d[lab] - lo) / (hi - lo), labels[lab]
+    sign, why = orientation(x, y)
+    if sign == 0:
+        return None, f"the labels do not orient the motion ({why})"
+    open_end, closed_end = (1.0, 0.0) if sign > 0 else (0.0, 1.0)
+    (s_open, how_open), (s_closed, how_closed) = end_state(x, y, open_end, 1.0), end_state(x, y, closed_end, 0.0)
+    if s_open - s_closed < 2 * SNAP:  # ends that would nearly meet: the labels are too rough to scale by
+        (s_open, how_open), (s_closed, how_closed) = (1.0, "the measured end"), (0.0, "the measured end")
+    s_lo, s_hi = (s_closed, s_open) if sign > 0 else (s_open, s_closed)
+    source = f"oriented by {why}; closed end {s_closed:g}: {how_closed}; open end {s_open:g}: {how_open}"
+    rate = (hi - lo) / (s_hi - s_lo)
+    return Calibration(lo - s_lo * rate, rate, (s_lo, s_hi), source), ""
 
 
 def label_figures(frames: np.ndarray, measured: np.ndarray, labels: np.ndarray, labelled: np.ndarray
@@ -365,59 +436,120 @@ def label_figures(frames: np.ndarray, measured: np.ndarray, labels: np.ndarray, 
             "label_median_error": round(float(np.median(diff)), 4) if len(diff) else float("inf")}
 
 
-def fit_motion(pv: PartViews, states: np.ndarray, known: np.ndarray, labelled: np.ndarray | None = None
-               ) -> tuple[Articulation, dict[str, Any]]:
+def fit_motion(pv: PartViews, states: np.ndarray, known: np.ndarray, labelled: np.ndarray | None = None,
+               trust_labels: bool = False) -> tuple[Articulation, dict[str, Any]]:
     """A hinge or a slide from the part's per-frame poses; states, known (F,) of the registered frames (labels and
     what `known_states` filled in); `labelled` (F,) the frames a person labelled (default: known).
 
     Returns the motion and what it measured: kind evidence, per-frame measured states (`frame_states`), label
-    check, flagged labels, `accepted` (enough trusted frames and the labels mostly agree) and its `reason`."""
+    check, flagged labels, `accepted` (the geometry's own evidence holds; with `trust_labels`, also the labels
+    mostly agree) and its `reason`."""
     labelled = known if labelled is None else labelled
     hinge, slide = fit_hinge(pv), fit_slide(pv)
     fit, evidence = choose(hinge, slide, pv)
     extra: dict[str, Any] = {"registered": int(len(pv.frames)), **hinge.figures, **slide.figures, **evidence,
-                             "kind_from": "geometry", **(turns_with_camera(pv, states, known) or {})}
-    return articulate(fit, pv.frames, states, known, labelled, extra)
+                             "kind_from": "geometry", **(turns_with_camera(pv, states, known) or {}),
+                             **residual_share(fit, pv)}
+    return articulate(fit, pv.frames, states, known, labelled, extra, trust_labels)
+
+
+def residual_share(fit: Fit, pv: PartViews) -> dict[str, Any]:
+    """How far the motion moves the part's middle (world units: a slide's span, a hinge's angle span times the
+    middle's distance from the axis) and the median position residual as a share of it (the rigidity check)."""
+    if not fit.ok.any():
+        return {}
+    lo, hi = ends(fit.d[fit.ok])
+    if fit.kind == "hinge":
+        p = fit.scale * pv.u[fit.ok] + pv.centre[fit.ok] - fit.point
+        radius = float(np.median(np.linalg.norm(p - np.outer(p @ fit.axis, fit.axis), axis=1)))
+        amplitude = radius * (hi - lo)
+    else:
+        amplitude = hi - lo
+    resid = float(np.median(fit.pos_resid[fit.ok]))
+    return {"moves_part_by": round(amplitude, 6), "residual_share": round(resid / max(amplitude, 1e-12), 4)}
+
+
+def jumpy_frames(frames: np.ndarray, d: np.ndarray, ok: np.ndarray, span: float) -> np.ndarray:
+    """(F,) bool: trusted frames whose displacement d leaves both the median of the (up to) two trusted frames
+    before it and of the two after it (in frame order) by more than JUMP x `span` (the motion's range): a
+    misregistered frame, not motion (a part moves smoothly; at a fast move a frame still agrees with one side)."""
+    out = np.zeros(len(d), bool)
+    idx = np.flatnonzero(ok)
+    idx = idx[np.argsort(frames[idx], kind="stable")]
+    for k, i in enumerate(idx):
+        sides = [d[idx[max(0, k - 2):k]], d[idx[k + 1:k + 3]]]
+        sides = [v for v in sides if len(v)]
+        if sides and all(abs(d[i] - float(np.median(v))) > JUMP * span for v in sides):
+            out[i] = True
+    return out
 
 
 def articulate(fit: Fit, frames: np.ndarray, states: np.ndarray, known: np.ndarray, labelled: np.ndarray,
-               extra: dict[str, Any]) -> tuple[Articulation, dict[str, Any]]:
-    """A fitted motion (whatever measured it) oriented and calibrated by the labels, with its figures: per-frame
-    measured states, the label check, flagged labels, `accepted` and its `reason` (`fit_motion`'s docstring)."""
-    cal = calibrate(fit.d, fit.ok, states, known)
+               extra: dict[str, Any], trust_labels: bool = False) -> tuple[Articulation, dict[str, Any]]:
+    """A fitted motion (whatever measured it) oriented by the labels (`calibrate`; `calibrate_by_labels` with
+    `trust_labels`), with its figures: per-frame measured states, the label check, flagged labels, `accepted` and
+    its `reason` (`fit_motion`'s docstring). Frames whose state jumps from both neighbours' are left out."""
+    ok = fit.ok.copy()
+    lo, hi = ends(fit.d[ok]) if ok.any() else (0.0, 0.0)
+    jump = jumpy_frames(np.asarray(frames), fit.d, ok, hi - lo)
+    ok &= ~jump
+    extra.update(jumpy_frames=int(jump.sum()), trusted_frames=int(fit.ok.sum()), trust_labels=bool(trust_labels))
+    if trust_labels:
+        cal = calibrate_by_labels(fit.d, ok, states, known)
+        why = "the labels do not orient the motion (label both ends)"
+    else:
+        cal, why = calibrate(fit.d, ok, states, known)
     axis, d, point = fit.axis.copy(), fit.d.copy(), fit.point.copy()
     if cal is None:
-        extra.update(accepted=False, reason="the labels do not orient the motion (label both ends)",
-                     scale=fit.scale, state_rmse_from_pose=float("inf"), label_median_error=float("inf"),
-                     label_check=[], flagged_labels=[])
+        extra.update(accepted=False, reason=why, scale=fit.scale, state_rmse_from_pose=float("inf"),
+                     label_median_error=float("inf"), label_check=[], flagged_labels=[])
         return Articulation(fit.kind, axis, point, 0.0, extra), extra
     rate, d0 = cal.rate, cal.d0
     if rate < 0:  # the axis points the way the state grows
         axis, d, rate, d0 = -axis, -d, -rate, -d0
-    measured = np.where(fit.ok, (d - d0) / rate, np.nan)
+    measured = np.where(ok, (d - d0) / rate, np.nan)
     extra.update(label_figures(frames, measured, states, labelled))
-    extra.update(scale=float(fit.scale), end_states=list(cal.end_states),
+    extra.update(scale=float(fit.scale), end_states=list(cal.end_states), ends_from=cal.source,
                  frame_states=[[int(f), round(float(m), 4)] for f, m in zip(frames, measured) if np.isfinite(m)],
                  pos_residual=round(float(np.median(fit.pos_resid[fit.ok])), 6))
     origin = point if fit.kind == "hinge" else point + d0 * axis  # a slide's origin: where it is at state 0
-    extra.update(_acceptance(fit, extra, rate))
+    extra.update(_acceptance(fit, extra, rate * abs(cal.end_states[1] - cal.end_states[0]), trust_labels))
     return Articulation(fit.kind, axis, origin, float(rate), extra), extra
 
 
-def _acceptance(fit: Fit, extra: dict[str, Any], rate: float) -> dict[str, Any]:
-    """accepted / reason: the motion is used unless the reconstruction turned with the camera, the part barely
-    moves or most labels disagree with it."""
+def displacement_noise(fit: Fit, extra: dict[str, Any]) -> float:
+    """A fit's per-frame noise in its displacement's units: a hinge's rotation noise (radians) where measured,
+    else its position residual (a slide's distance from its line; the silhouette route's search step)."""
+    if fit.kind == "hinge" and extra.get("rot_noise_deg") is not None:
+        return float(np.radians(extra["rot_noise_deg"]))
+    return float(np.median(fit.pos_resid[fit.ok])) if fit.ok.any() else 0.0
+
+
+def _acceptance(fit: Fit, extra: dict[str, Any], span: float, trust_labels: bool = False) -> dict[str, Any]:
+    """accepted / reason from the geometry's own evidence: refused when the reconstruction turned with the camera,
+    the part barely moves (its measured span within MIN_MOVE x its noise), its positions miss the part's by more
+    than MAX_RESIDUAL of how far it moves it, or its states jump between neighbouring frames in more than MAX_JUMPY
+    of them; with `trust_labels`, also when most labels disagree."""
     if extra.get("follows_camera"):
         return {"accepted": False, "reason": f"its reconstruction turned with the camera where the labels say the "
                                              f"part rests ({extra['rest_turn_deg']} deg against the camera's "
                                              f"{extra['camera_turn_deg']} deg over {extra['rest_frames']} frames)"}
-    if fit.kind == "slide":
-        noise = float(np.median(fit.pos_resid[fit.ok]))
-        if rate < MIN_MOVE * max(noise, 1e-12):
-            return {"accepted": False, "reason": f"it barely moves (range {rate:.3g} against position noise "
-                                                 f"{noise:.3g})"}
+    noise = displacement_noise(fit, extra)
+    if span < MIN_MOVE * max(noise, 1e-12):
+        unit = "rad" if fit.kind == "hinge" else "world units"
+        return {"accepted": False, "reason": f"the part is at one state in every frame: nothing to measure (its "
+                                             f"measured {fit.kind} spans {span:.3g} {unit}, within {MIN_MOVE:g} x "
+                                             f"its noise {noise:.3g})"}
+    if extra.get("residual_share", 0.0) > MAX_RESIDUAL:
+        return {"accepted": False, "reason": f"its positions miss the part's by {extra['residual_share']:.0%} of how "
+                                             f"far it moves the part (at most {MAX_RESIDUAL:.0%}): a bent "
+                                             f"reconstruction, not a rigid {fit.kind}"}
+    trusted = max(extra.get("trusted_frames", 0), 1)
+    if extra.get("jumpy_frames", 0) > MAX_JUMPY * trusted:
+        return {"accepted": False, "reason": f"its states jump between neighbouring frames in {extra['jumpy_frames']}"
+                                             f" of {trusted} frames (more than {MAX_JUMPY:.0%}): noise, not motion"}
     n = len(extra["label_check"])
-    if extra["label_median_error"] > LABEL_TOL or len(extra["flagged_labels"]) > MAX_FLAGGED * n:
+    if trust_labels and (extra["label_median_error"] > LABEL_TOL or len(extra["flagged_labels"]) > MAX_FLAGGED * n):
         return {"accepted": False, "reason": f"{len(extra['flagged_labels'])} of {n} labels disagree with the "
-                                             f"measured states by more than {FLAG_TOL}"}
+                                             f"measured states by more than {FLAG_TOL} (--trust-labels)"}
     return {"accepted": True, "reason": ""}

@@ -155,6 +155,14 @@ def _fit_front(views: Views, use: dict[int, np.ndarray], proj: dict[int, np.ndar
     return face, med, float(max(turns)), len(use)
 
 
+def view_spread_deg(point: np.ndarray, w2c: np.ndarray) -> float:
+    """The widest angle (degrees) between two cameras (w2c (F, 4, 4), OpenCV) as seen from `point` (3,)."""
+    centres = -np.einsum("fji,fj->fi", w2c[:, :3, :3], w2c[:, :3, 3])
+    rays = centres - point
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+    return float(np.degrees(np.arccos(np.clip((rays @ rays.T).min(), -1.0, 1.0)))) if len(rays) else 0.0
+
+
 def _normal(face: np.ndarray) -> np.ndarray:
     n = np.cross(face[2] - face[0], face[3] - face[1])
     return n / max(float(np.linalg.norm(n)), 1e-12)
@@ -203,9 +211,16 @@ def find_front(views: Views, states: np.ndarray, known: np.ndarray) -> tuple[np.
     tilt = per_px * max(med, MIN_NOISE_PX)
     fig = {"front_frames": n, "front_px": round(med, 2), "front_tilt_deg": round(tilt, 2), "front_state": at}
     if rank((face, med, per_px, n, at))[0]:
-        fig["silhouette_reason"] = (f"the part's front is not pinned down by the views (corners reproject within "
-                                    f"{med:.2f} px, need {FACE_PX}; that scatter may tilt it {tilt:.1f} deg, need "
-                                    f"{MAX_TILT_DEG}: the views are too close together)")
+        spread = view_spread_deg(face.mean(0), views.w2c[sorted(quads)])
+        fig["view_spread_deg"] = round(spread, 1)
+        why = []
+        if med > FACE_PX:
+            why.append(f"its corners reproject within {med:.2f} px of the masks' corners, need {FACE_PX} (the "
+                       f"outline is not one flat quadrilateral in every view)")
+        if tilt > MAX_TILT_DEG:
+            why.append(f"that scatter may tilt it {tilt:.1f} deg, need {MAX_TILT_DEG}, with the {len(quads)} views "
+                       f"spanning {spread:.0f} deg around it")
+        fig["silhouette_reason"] = "the part's front is not pinned down by the views: " + "; ".join(why)
         return None, fig
     return face, fig
 
@@ -326,7 +341,7 @@ def silhouette_motion(views: Views, states: np.ndarray, known: np.ndarray, frame
 
 
 def measure_silhouettes(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: np.ndarray,
-                        min_pixels: int = 400) -> tuple[Articulation | None, dict[str, Any]]:
+                        min_pixels: int = 400, trust_labels: bool = False) -> tuple[Articulation | None, dict[str, Any]]:
     """Object `obj`'s motion from its masks over the dataset `ds` and its known cameras; states, known, labelled
     (N,) over the dataset's frames. (None, figures with `silhouette_reason`) when the route cannot measure it."""
     masks = [ds.load_mask(f)[..., obj] for f in ds.frames]
@@ -339,4 +354,4 @@ def measure_silhouettes(ds, obj: int, states: np.ndarray, known: np.ndarray, lab
         return None, dict(fig, registered=0)
     fig.update(registered=int(fit.ok.sum()), kind_from="silhouettes")
     at = np.array(frames)
-    return articulate(fit, at, states[at], known[at], labelled[at], fig)
+    return articulate(fit, at, states[at], known[at], labelled[at], fig, trust_labels)

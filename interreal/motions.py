@@ -73,6 +73,9 @@ class MotionConfig:
                                "part's own SfM), pnp (known-camera PnP: seconds, needs a stretch where the part "
                                "rests) or silhouette (its masks against the known cameras: for a plain part with "
                                "a flat front)", choices=ROUTES)
+    trust_labels: bool = option(False, "let the state labels calibrate each motion and refuse it when most of them "
+                                       "disagree (default: the geometry measures every frame's state, the labels "
+                                       "only say which end is closed, and a label that disagrees is reported)")
     num_threads: int = -1
     verbose: bool = option(False, "COLMAP's own log on the terminal")
 
@@ -244,13 +247,14 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
             if obj is None:
                 continue
             step("silhouettes")
-            motion, fig = measure_silhouettes(ds, obj, states, known, labelled, cfg.min_pixels)
+            motion, fig = measure_silhouettes(ds, obj, states, known, labelled, cfg.min_pixels, cfg.trust_labels)
         else:
             motion, fig = _measure_part_sfm(pc, ds, names, part, states, known, labelled, cfg, step, start)
         fig.setdefault("route", route)
         tried[route] = {"registered": fig.get("registered", 0), "kind": None if motion is None else motion.kind,
                         "accepted": bool(fig.get("accepted")),
-                        "reason": fig.get("reason") or fig.get("silhouette_reason"),
+                        "reason": fig.get("reason") or fig.get("silhouette_reason")
+                        or ("" if fig.get("accepted") else "gave no motion (no reason recorded)"),
                         "seconds": round(time.monotonic() - t0, 1)}
         if motion is not None and (best[0] is None or _better(fig, best[1])):
             best = (motion, fig)
@@ -269,10 +273,10 @@ def _measure_part_sfm(pc, ds, names: list[str], part: Path, states: np.ndarray, 
     """The part's own reconstruction, up to `cfg.attempts` mapper seeds while the budget allows."""
     best: tuple[Articulation | None, dict[str, Any]] = (None, {"registered": 0})
     if cfg.attempts < 1:
-        return None, {"registered": 0, "attempts": 0}
+        return None, {"registered": 0, "attempts": 0, "reason": "no reconstruction attempted (attempts 0)"}
     step("matching")
     db = match_part(pc, ds, names, part / "masks", part, cfg)
-    a = 0
+    a, most_known = 0, 0
     for a in range(cfg.attempts):
         if a and time.monotonic() - start > cfg.budget_s / 2:
             best[1]["stopped"] = f"time: {time.monotonic() - start:.0f} s of a {cfg.budget_s:.0f} s budget"
@@ -284,14 +288,20 @@ def _measure_part_sfm(pc, ds, names: list[str], part: Path, states: np.ndarray, 
         if pv is None or len(pv.frames) < cfg.min_registered or int(known[pv.frames].sum()) < cfg.min_known:
             if best[0] is None and pv is not None:  # what the warning reports: the most any attempt registered
                 best[1]["registered"] = max(len(pv.frames), best[1]["registered"])
+                most_known = max(most_known, int(known[pv.frames].sum()))
             continue
-        motion, fig = fit_motion(pv, states[pv.frames], known[pv.frames], labelled[pv.frames])
+        motion, fig = fit_motion(pv, states[pv.frames], known[pv.frames], labelled[pv.frames], cfg.trust_labels)
         fig["attempt"], fig["route"] = a, "sfm"
         if best[0] is None or _better(fig, best[1]):
             best = (motion, fig)
         if fig["accepted"]:
             break
     best[1]["attempts"] = a + 1
+    if best[0] is None:
+        best[1]["reason"] = (f"its own reconstruction registered at most {best[1]['registered']} of the {len(names)} "
+                             f"frames it shows in, {most_known} of them at a known state (need {cfg.min_registered} "
+                             f"and {cfg.min_known}), over {a + 1} attempt(s)"
+                             + (f"; stopped by {best[1]['stopped']}" if best[1].get("stopped") else ""))
     return best
 
 
@@ -316,8 +326,12 @@ def measure_part_pnp(ds, names: list[str], mask_dir: Path, states: np.ndarray, k
     refs = reference_frames(positions, states, known, labelled)
     pv, fig = pnp_views(grays, masks, c2w, k, intr.dist(), refs, most=min(cfg.max_features, 1500))
     if pv is None or len(pv.frames) < cfg.min_registered or int(known[pv.frames].sum()) < cfg.min_known:
-        return None, dict(fig, registered=0 if pv is None else len(pv.frames))
-    motion, out = fit_motion(pv, states[pv.frames], known[pv.frames], labelled[pv.frames])
+        n, n_known = (0, 0) if pv is None else (len(pv.frames), int(known[pv.frames].sum()))
+        reason = (f"located {n} of the {len(names)} frames it shows in, {n_known} at a known state (need "
+                  f"{cfg.min_registered} and {cfg.min_known}), from {fig.get('points', 0)} points triangulated where "
+                  f"it rests")
+        return None, dict(fig, registered=n, reason=reason)
+    motion, out = fit_motion(pv, states[pv.frames], known[pv.frames], labelled[pv.frames], cfg.trust_labels)
     out.update({k: v for k, v in fig.items() if k not in out})
     return motion, out
 
@@ -407,12 +421,9 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                 fids = [f.fid for f in ds.frames]
                 st.update({k: v if not isinstance(v, float) or np.isfinite(v) else None for k, v in fig.items()})
                 if motion is None:
-                    rep.warn(f"'{name}': its own reconstruction registered only {fig.get('sfm_registered', 0)} "
-                             f"and known-camera PnP located {fig.get('pnp_registered', 0)} of the {len(names)} "
-                             f"frames it shows in (need {cfg.min_registered}, {cfg.min_known} with a known state), "
-                             f"best of {fig['attempts']} reconstructions; its silhouettes: "
-                             f"{fig.get('routes', {}).get('silhouette', {}).get('reason') or 'not tried'}: no motion "
-                             f"measured; label more frames where it moves, or film it with more texture in view",
+                    rep.warn(f"'{name}': no route measured a motion in the {len(names)} frames it shows in: "
+                             + "; ".join(f"{r}: {v['reason']}" for r, v in fig.get("routes", {}).items())
+                             + "; label more frames where it moves, or film it with more texture in view",
                              cause="motion-unregistered", object=name)
                     continue
                 st["kind"] = motion.kind
@@ -421,17 +432,22 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                 # every registered frame's measured state, by frame id: what training fits the states to
                 # (`Articulation.measured_states`), eyeballed labels being coarser than the geometry
                 motion.extra["frame_states"] = {fids[f]: m for f, m in fig.get("frame_states", [])}
+                measured_by = f"{fig.get('route', '?')} ({fig['registered']} of the {len(names)} frames it shows in)"
                 if not fig["accepted"]:
-                    rep.warn(f"'{name}': the measured {motion.kind} is not used: {fig['reason']}; best of "
-                             f"{fig['attempts']} reconstructions, which registered {fig['registered']} of the "
-                             f"{len(names)} frames it shows in; {disagreement_text(fig.get('label_check', []), fids)}"
-                             f"{routes_text(fig)}; check those labels and the part's masks",
+                    rep.warn(f"'{name}': the {motion.kind} measured by {measured_by} is not used: {fig['reason']}; "
+                             f"{disagreement_text(fig.get('label_check', []), fids)}{routes_text(fig)}; check "
+                             + ("those labels and " if cfg.trust_labels else "") + "the part's masks",
                              cause="motion-inconsistent", object=name, flagged=_flag_rows(fig, fids))
                     continue
+                if "no label near it" in fig.get("ends_from", ""):
+                    rep.warn(f"'{name}': {fig['ends_from']}: label a frame at each end to be sure",
+                             cause="ends-from-geometry", object=name)
                 if fig["flagged_labels"]:
                     rep.warn(f"'{name}': {len(fig['flagged_labels'])} of {len(fig['label_check'])} labels disagree "
-                             f"with the measured {motion.kind} (used): "
-                             f"{disagreement_text(fig['label_check'], fids)}", cause="label-disagrees", object=name,
+                             f"with the {motion.kind} measured by {measured_by}, which is used"
+                             + ("" if cfg.trust_labels else " (the labels only orient it; --trust-labels lets them "
+                                "decide)") + f": {disagreement_text(fig['label_check'], fids)}; the annotate app "
+                             f"offers the measured states as the fix", cause="label-disagrees", object=name,
                              flagged=_flag_rows(fig, fids))
                 motions[name] = motion
         write_articulation(ds_path, motions, {"source": "interreal motions"})

@@ -57,10 +57,11 @@ def label_indices(labels_file: Path) -> list[int]:
 
 def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None = None,
             labels: str | Path | None = None, motions: bool = True, degrees: Any = None, cm: Any = None,
-            **opts: Any) -> dict[str, Any]:
+            trust_labels: bool = False, **opts: Any) -> dict[str, Any]:
     """Run the stages in order; each writes its own reports/<stage>.json, and reports/process.json collects their
     warnings. Returns the pose figures. With masks and labels, `motions` also measures each object's rigid motion
-    (`interreal motions`). degrees / cm: physical label values, as `interreal label --degrees / --cm`.
+    (`interreal motions`; `trust_labels` as its --trust-labels). degrees / cm: physical label values, as
+    `interreal label --degrees / --cm`.
 
     `opts`: the fields of `FramesConfig` (target, every, long_side, keep), of `MasksConfig` (work_long_side, flow,
     ...) and of `SfMConfig` (the rest; an unknown name is an InputError of the poses stage)."""
@@ -77,7 +78,8 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
     if labels is not None and (degrees is not None or cm is not None):
         parse_range(degrees, "degrees"), parse_range(cm, "cm")  # a malformed range fails now, not after SfM
     settings = {"keyframes": str(keyframes) if keyframes else None, "labels": str(labels) if labels else None,
-                **frames_opts, "motions": motions, "degrees": degrees, "cm": cm, **masks_opts, **sfm}
+                **frames_opts, "motions": motions, "trust_labels": trust_labels, "degrees": degrees, "cm": cm,
+                **masks_opts, **sfm}
     ds.mkdir(parents=True, exist_ok=True)
     with StageReport(ds, "process", inputs={"source": str(source)}, settings=settings) as rep:
         with rep.step("frames") as st:
@@ -105,7 +107,7 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
         had_motions = read_report(ds, "motions") is not None
         if motions and ((kf_dir is not None and labels is not None) or had_motions):
             with rep.step("motions") as st:
-                st.update(estimate_motions(ds))
+                st.update(estimate_motions(ds, trust_labels=trust_labels))
             _collect_warnings(rep, ds, "motions")
         left = [s.message for s in provenance.stale_stages(ds)]
         for message in left:
@@ -173,6 +175,9 @@ def add_arguments(p) -> None:
     add_flags(p.add_argument_group("frames"), FramesConfig)
     p.add_argument("--no-motions", dest="motions", action="store_false",
                    help="with --keyframes and --labels: skip measuring each object's rigid motion")
+    p.add_argument("--trust-labels", action="store_true",
+                   help="let the state labels calibrate each measured motion and refuse it when most disagree "
+                        "(default: the geometry measures every frame's state, the labels only orient it)")
     add_unit_arguments(p)
     add_flags(p.add_argument_group("masks (with --keyframes)"), MasksConfig)
     add_sfm_options(p.add_argument_group("poses"))
@@ -185,7 +190,8 @@ def add_arguments(p) -> None:
 def main(args) -> int:
     t0 = time.perf_counter()
     fig = process(args.input, args.dataset, keyframes=args.keyframes, labels=args.labels, motions=args.motions,
-                  degrees=args.degrees, cm=args.cm, **frames_options(args), **values_from_args(MasksConfig, args),
+                  trust_labels=args.trust_labels, degrees=args.degrees, cm=args.cm, **frames_options(args),
+                  **values_from_args(MasksConfig, args),
                   **sfm_options(args))
     ran = list((read_report(args.dataset, "process") or {}).get("steps", {}))
     lines: list[str] = []

@@ -185,7 +185,9 @@ def marks_in(ds_root: Path, marks: dict) -> tuple[np.ndarray, np.ndarray, np.nda
 
     ds = load_dataset(ds_root)
     by_index = {fr.index: fr for fr in ds.frames if fr.c2w is not None}
-    rows = {int(k): np.array([c if c is not None else [np.nan, np.nan] for c in v], float)
+    size = marks.get("size")  # the marks' pixel grid (the video's); the dataset's images may be smaller
+    zoom = ds.frame_intrinsics(ds.frames[0]).w / float(size[0]) if size else 1.0
+    rows = {int(k): zoom * np.array([c if c is not None else [np.nan, np.nan] for c in v], float)
             for k, v in marks["frames"].items()}
     rows = {k: v for k, v in rows.items() if np.isfinite(v).any()}  # null: outside the image, not marked
     frames = np.array(sorted(set(rows) & set(by_index)))

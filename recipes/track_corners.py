@@ -145,6 +145,7 @@ def main() -> None:
 
     write_json(args.out, {"what": f"corners {keep} of the quad tracked from {args.quad} in {args.video.name}",
                           "rest": [int(v) for v in args.rest.split(",") if v],
+                          "size": [int(images[0].shape[1]), int(images[0].shape[0])],  # the marks' pixel grid
                           "frames": {str(i): [_mark(c, images[0].shape) for c in q[keep]]
                                      for i, q in enumerate(quads)}})
     if args.sheet:

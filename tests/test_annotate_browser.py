@@ -271,3 +271,34 @@ def test_page_without_token_is_refused(browser, server):
     resp = page.goto(srv.url.split("?")[0])
     assert resp.status == 403 and "token" in page.inner_text("body")
     page.close()
+
+
+def test_a_label_the_geometry_disagrees_with_is_fixed_in_one_click(browser, tmp_path):
+    """`interreal motions` named a label a likely mistake (0.90 where the part's measured motion gives 0.51): the
+    app lists the frame with a button that sets the measured state, and the label file holds it after the click."""
+    from interreal.annotate.server import AnnotateServer
+    from interreal.dataset import write_labels, write_mapping
+    from interreal.report import StageReport
+
+    ds = tmp_path / "ds"
+    for i in range(6):
+        write_image(ds / "images" / f"frame_{i:05d}.png", np.full((48, 64, 3), 40 * i, np.uint8))
+    write_mapping(ds, {0: "lid"})
+    write_labels(ds, {"frame_00000": {"lid": 0.0}, "frame_00004": {"lid": 0.9}})
+    with StageReport(ds, "motions", inputs={}, settings={}) as rep:
+        rep.warn("'lid': 1 of 2 labels disagree", cause="label-disagrees", object="lid",
+                 flagged=[["00004", 0.9, 0.51]])
+    srv = AnnotateServer(ds, port=0).start()
+    try:
+        page = browser.new_page()
+        page.goto(srv.url)
+        ready(page)
+        button = page.locator("#suggested li[data-fid='00004'] button.fix")
+        assert button.inner_text() == "use measured 0.51"
+        before = saves(page)
+        button.click()
+        saved(page, before)
+        assert read_labels(ds)["frame_00004"] == {"lid": 0.51} and read_labels(ds)["frame_00000"] == {"lid": 0.0}
+        page.close()
+    finally:
+        srv.stop()

@@ -167,3 +167,18 @@ def test_lens_distortion_is_taken_into_account():
     motion, fig = measure_silhouettes(ds, 0, st, kn, labelled, min_pixels=50)
     assert motion is not None and motion.kind == "slide" and fig["accepted"], fig
     assert off_deg(motion.axis, [0.0, 1.0, 0.0]) < 1.5 and abs(motion.range - 0.15) / 0.15 < 0.08, motion  # 1.0, 5 %
+
+
+def test_view_spread_is_the_widest_angle_between_cameras_seen_from_the_part():
+    """What a refusal states instead of "the views are too close together": cameras 90 deg apart around a point."""
+    from interreal.motion_silhouette import view_spread_deg
+
+    w2c = []
+    for deg in (0.0, 30.0, 90.0):
+        a = np.radians(deg)
+        c = np.array([np.sin(a), 0.0, -np.cos(a)]) * 2.0  # on a circle about the origin
+        r = np.eye(3)
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = r, -r @ c
+        w2c.append(m)
+    assert abs(view_spread_deg(np.zeros(3), np.stack(w2c)) - 90.0) < 1e-6

@@ -242,7 +242,8 @@ class DatasetStore:
         except (OSError, ValueError):
             return []
         return [{"fid": f["fid"], "reason": f"label {f['label']:.2f} of '{f['object']}' disagrees with its measured "
-                                           f"motion ({f['measured']:.2f}): likely a mistake"}
+                                           f"motion ({f['measured']:.2f}): likely a mistake",
+                 "fix": {"object": f["object"], "value": round(float(np.clip(f["measured"], 0.0, 1.0)), 2)}}
                 for f in flags if isinstance(f["label"], (int, float)) and isinstance(f["measured"], (int, float))]
 
     # ---------------------------------------------------------------------------------------------------- objects

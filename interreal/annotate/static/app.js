@@ -539,7 +539,17 @@ function gotoFid(fid) {
 function renderLists() {
   const sg = $("suggested"); sg.innerHTML = "";
   if (!S.suggested.length) sg.appendChild(li(S.masks.length ? "no suggestions in the masks report" : "run propagation to get suggestions"));
-  for (const s of S.suggested) sg.appendChild(li("frame " + s.fid, s.reason, s.fid));
+  for (const s of S.suggested) {
+    const el = li("frame " + s.fid, s.reason, s.fid);
+    if (s.fix) {  // a label the geometry disagrees with: one click sets the measured state
+      const b = document.createElement("button");
+      b.className = "fix"; b.textContent = `use measured ${s.fix.value.toFixed(2)}`;
+      b.title = `set '${s.fix.object}' on this frame to the state its measured motion gives`;
+      b.addEventListener("click", async (ev) => { ev.stopPropagation(); gotoFid(s.fid); await setState(s.fix.object, s.fix.value); });
+      el.appendChild(b);
+    }
+    sg.appendChild(el);
+  }
   sg.querySelectorAll("li:not([data-fid])").forEach((e) => e.classList.add("empty"));
   const kl = $("keyframes"); kl.innerHTML = "";
   $("kf-count").textContent = `(${S.keyframes.length})`;

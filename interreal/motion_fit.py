@@ -368,18 +368,21 @@ def orientation(x: np.ndarray, y: np.ndarray) -> tuple[int, str]:
     positions x (F,) along the measured motion (0 at its low end, 1 at its high end).
 
     Labels that vary orient by their trend (a robust line's slope: each may be off by 0.5, the order holds); labels
-    of one value orient only when they all lie near one end (that end gets the state they name)."""
+    of one value orient only when they all lie near one end and name a closed or open state (a part-way value
+    there says nothing of which way the part went)."""
     if len(x) == 0:
         return 0, "no labelled frame was measured"
     if np.ptp(y) >= 2 * SNAP:
         slope, _ = robust_line(x, y)
         return (1 if slope > 0 else -1 if slope < 0 else 0), "the labels' trend"
     v, where = float(np.median(y)), float(np.median(x))
-    if x.max() <= END_NEAR or x.min() >= 1 - END_NEAR:
-        at_high = where > 0.5
-        return (1 if at_high == (v > 0.5) else -1), f"every label says {v:g} near one end"
-    return 0, (f"every label says {v:g} but the labelled frames lie along the whole measured motion (positions "
-               f"{x.min():.2f} to {x.max():.2f} of it): label both ends")
+    if not (x.max() <= END_NEAR or x.min() >= 1 - END_NEAR):
+        return 0, (f"every label says {v:.2f} but the labelled frames lie along the whole measured motion "
+                   f"(positions {x.min():.2f} to {x.max():.2f} of it): label both ends")
+    if SNAP < v < 1 - SNAP:  # part-way at one end: the other end could be closed or open
+        return 0, (f"every label says {v:.2f}, part-way, at one end of the measured motion: label a frame at the "
+                   f"other end")
+    return (1 if (where > 0.5) == (v > 0.5) else -1), f"every label says {v:.2f} near one end"
 
 
 def end_state(x: np.ndarray, y: np.ndarray, end: float, state: float) -> tuple[float, str]:
@@ -416,7 +419,7 @@ def calibrate(d: np.ndarray, ok: np.ndarray, labels: np.ndarray, labelled: np.nd
         return None, f"the labels do not orient the motion ({why})"
     open_end, closed_end = (1.0, 0.0) if sign > 0 else (0.0, 1.0)
     (s_open, how_open), (s_closed, how_closed) = end_state(x, y, open_end, 1.0), end_state(x, y, closed_end, 0.0)
-    if s_open - s_closed < 2 * SNAP:  # ends that would nearly meet: the labels are too rough to scale by
+    if s_open - s_closed <= SNAP / 2:  # ends that would meet or cross: the labels are too rough to scale by
         (s_open, how_open), (s_closed, how_closed) = (1.0, "the measured end"), (0.0, "the measured end")
     s_lo, s_hi = (s_closed, s_open) if sign > 0 else (s_open, s_closed)
     source = f"oriented by {why}; closed end {s_closed:g}: {how_closed}; open end {s_open:g}: {how_open}"

@@ -40,6 +40,9 @@ QUAD_IOU = 0.95        # ... a quadrilateral that covers the mask this well (els
 # the chosen motion's silhouettes must overlap the masks this well on average: on seven simulated captures the
 # drawers measured right overlapped 0.86-0.90; a door at 0.75 (its edge and inside in view) was 0.28 off in state
 MIN_IOU = 0.8
+# a frame whose best silhouette overlaps its mask less than this is not measured (the door turned edge-on, its inside
+# in view: no displacement of the flat front explains the mask, and the best one is a guess)
+MIN_FRAME_IOU = 0.7
 SIDE = 480             # masks are compared at most this large (long side)
 SLIDE_REACH = 2.0      # slide displacements searched, in lengths of the front's diagonal
 HINGE_SPAN_DEG = 120.0    # hinge angles searched, either way
@@ -326,15 +329,17 @@ def silhouette_motion(views: Views, states: np.ndarray, known: np.ndarray, frame
     results = []
     for cand in candidates(face, views.w2c[shown]):
         found = [best_displacement(sil, cand, face, i, grids[cand.kind]) for i in shown]
-        results.append((float(np.mean([v for _, v in found])), cand, np.array([x for x, _ in found])))
+        results.append((float(np.mean([v for _, v in found])), cand, np.array([x for x, _ in found]),
+                        np.array([v for _, v in found])))
     fig["silhouette_iou"] = {f"{c.kind}{'' if c.kind == 'slide' else k}": round(v, 3)
-                             for k, (v, c, _) in enumerate(results)}
-    score, cand, d = max(results, key=lambda r: r[0])
+                             for k, (v, c, _, _) in enumerate(results)}
+    score, cand, d, ious = max(results, key=lambda r: r[0])
     fig["silhouette_mean_iou"] = round(score, 3)
     if score < MIN_IOU:
         fig["silhouette_reason"] = f"no motion's silhouettes overlap the masks well (best {score:.2f}, need {MIN_IOU})"
         return None, fig
-    measured = dict(zip(shown, d))
+    measured = {i: x for i, x, v in zip(shown, d, ious) if v >= MIN_FRAME_IOU}
+    fig["silhouette_unfit_frames"] = len(shown) - len(measured)
     step = float(grids[cand.kind][1] - grids[cand.kind][0])
     return Fit(cand.kind, cand.axis, cand.point, np.array([measured.get(i, 0.0) for i in frames]),
                np.array([i in measured for i in frames]), np.full(len(frames), step), 1.0, {}), fig

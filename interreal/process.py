@@ -16,7 +16,7 @@ from .conventions import frame_index
 from .errors import InputError
 from .frames import FramesConfig, extract_frames, frames_options
 from .masks.config import MasksConfig
-from .motions import estimate_motions
+from .motions import estimate_motions, part_line
 from .options import add_flags, options_of, values_from_args
 from .labels import add_unit_arguments, import_labels, parse_range, read_label_file
 from .masks import propagate
@@ -126,7 +126,8 @@ def _collect_warnings(rep: StageReport, ds: Path, stage: str) -> None:
 
 
 def stage_summary(ds: Path, stage: str) -> str | None:
-    """One line of what a stage made, from its report's figures (None when it has no report)."""
+    """What a stage made, from its report's figures: one line (motions: and one per part it measured); None when it
+    has no report."""
     r = read_report(ds, stage)
     if r is None:
         return None
@@ -147,8 +148,10 @@ def stage_summary(ds: Path, stage: str) -> str | None:
                 + (f", {len(f['skipped_frames'])} rows skipped" if f.get("skipped_frames") else ""))
     if stage == "motions":
         objs = f.get("objects") or {}
+        parts = f.get("parts") or {}
         return (f"motions: {f.get('measured', 0)} of {f.get('total', '?')} objects measured"
-                + (": " + ", ".join(f"{n} ({k})" for n, k in objs.items()) if objs else ""))
+                + (": " + ", ".join(f"{n} ({k})" for n, k in objs.items()) if objs else "")
+                + "".join(f"\n  {part_line(n, p)}" for n, p in parts.items()))
     return None
 
 

@@ -345,3 +345,28 @@ def test_ten_parts_annotations_name_only_what_the_video_shows(tmp_path):
     assert set(np.unique(keys)) - {0} == set(range(1, len(ann) + 1))  # every named part is drawn somewhere
     states = yaml.safe_load((cap / "annotations" / "states.yaml").read_text())
     assert all(set(v) == seen for v in states.values())
+
+
+def test_plain_furniture_paints_the_parts_and_keeps_the_rest_of_the_capture():
+    """`furniture="plain"`: every furniture and part surface one flat colour (a painted cabinet door), the room's
+    texture, the camera path and the states as the photo version draws them."""
+    cfg = dict(frames=30, width=160, height=120, seed=4, threads=1)
+    photo, plain = build_scene(SynthConfig(**cfg)), build_scene(SynthConfig(**cfg, furniture="plain"))
+    assert np.allclose(photo.camera_path(), plain.camera_path()) and np.allclose(photo.states(), plain.states())
+    poses, states = photo.camera_path(), photo.states()
+    a, b = photo.render(poses[15], states[15], frame=15), plain.render(poses[15], states[15], frame=15)
+    assert np.array_equal(a.instance, b.instance)
+    door = a.instance == 1
+    inside = cv2.erode(door.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+
+    def grey(r):
+        return cv2.cvtColor(np.asarray(r.rgb, np.float32), cv2.COLOR_RGB2GRAY)
+
+    def edges(r):
+        return np.abs(cv2.Laplacian(grey(r), cv2.CV_32F))[inside]
+
+    assert door.sum() > 200 and edges(b).mean() < 0.2 * edges(a).mean()  # no texture on the painted door
+    room = a.instance == 0
+    assert np.abs(grey(a)[room] - grey(b)[room]).mean() < 0.5 * np.abs(grey(a)[room]).mean()  # the room stays
+    with pytest.raises(InputError, match="furniture"):
+        SynthConfig(furniture="chrome").check()

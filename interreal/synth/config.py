@@ -16,6 +16,7 @@ from ..options import option
 
 PRESETS_DIR = Path(__file__).resolve().parent.parent / "presets"
 TEXTURES = ("photo", "low", "none")
+FURNITURE = ("photo", "plain")
 MAX_PARTS = 10
 MIN_ROOM_SCALE = 0.65  # smaller: the back-wall furniture and the camera's arc no longer fit in the room
 MAX_ROOM_SCALE = 2.5  # truth depth PNGs hold up to 16.4 m
@@ -37,6 +38,9 @@ class SynthConfig:
     k2: float = 0.01
     texture: str = option("photo", "room surface texture (walls, floor, ceiling)", choices=TEXTURES)
     texture_contrast: float = 0.8  # photo contrast around its mean (lower = easier to fit for a radiance field)
+    furniture: str = option("photo", "furniture and part surfaces: photo, or plain (each surface one painted colour, "
+                                     "as most appliances and cabinet doors are; the room keeps its texture)",
+                            choices=FURNITURE)
     motion_blur: float = option(0.0, "shutter time as a fraction of the frame interval, 0-1 (0 = sharp)")
     blur_samples: int = 5  # sub-frame renders averaged when motion_blur > 0
     supersample: int = option(1, "S x S rays per pixel in the video (anti-aliasing, S^2 the cost)")
@@ -65,6 +69,8 @@ class SynthConfig:
             problems.append(f"parts must be in 1..{MAX_PARTS} (got {self.parts})")
         if self.texture not in TEXTURES:
             problems.append(f"texture must be one of {TEXTURES} (got {self.texture!r})")
+        if self.furniture not in FURNITURE:
+            problems.append(f"furniture must be one of {FURNITURE} (got {self.furniture!r})")
         if not 20.0 <= self.hfov_deg <= 120.0:
             problems.append(f"hfov_deg must be in [20, 120] (got {self.hfov_deg})")
         for name in ("motion_blur", "occluder"):

@@ -121,6 +121,12 @@ class _Builder:
     def photo(self, photo: str, tint=None) -> int:
         return self.tex(f"{photo}#{len(self.atlas.names)}", self.tm.crop(photo, TILE, tint))
 
+    def plain(self, photo: str, tint=None) -> int:
+        """The photo's mean colour, flat (a painted surface): the crop is still drawn, so every later random draw,
+        and so the rest of the scene, stays what the photo version gives."""
+        crop = self.tm.crop(photo, TILE, tint)
+        return self.tex(f"plain {photo}#{len(self.atlas.names)}", self.tm.flat(tuple(crop.reshape(-1, 3).mean(0))))
+
     def box(self, lo, hi, tile: int | dict[int, int], scale: float | None = None, wall: str = "back") -> BoxSpec:
         """Box with `tile` on every face (or {face: tile} with key -1 as the default)."""
         lo, hi = np.asarray(lo, float), np.asarray(hi, float)
@@ -160,7 +166,7 @@ class _Builder:
     def furniture(self) -> tuple[list[BoxSpec], list[Part]]:
         cfg = self.cfg
         a = cfg.articulation
-        P = self.photo
+        P = self.photo if cfg.furniture == "photo" else self.plain
         wood = lambda: P("gravel", (0.72, 0.52, 0.34))  # noqa: E731
         dark = self.tex("handle", self.tm.flat((0.12, 0.12, 0.13)))
         static: list[BoxSpec] = []

@@ -377,8 +377,8 @@ def orientation(x: np.ndarray, y: np.ndarray) -> tuple[int, str]:
         return (1 if slope > 0 else -1 if slope < 0 else 0), "the labels' trend"
     v, where = float(np.median(y)), float(np.median(x))
     if not (x.max() <= END_NEAR or x.min() >= 1 - END_NEAR):
-        return 0, (f"every label says {v:.2f} but the labelled frames lie along the whole measured motion "
-                   f"(positions {x.min():.2f} to {x.max():.2f} of it): label both ends")
+        return 0, (f"every label says {v:.2f}, but the measurement puts those frames at positions {x.min():.2f} "
+                   f"to {x.max():.2f} of its motion, not at one end: label both ends, or the measurement is wrong")
     if SNAP < v < 1 - SNAP:  # part-way at one end: the other end could be closed or open
         return 0, (f"every label says {v:.2f}, part-way, at one end of the measured motion: label a frame at the "
                    f"other end")

@@ -19,6 +19,7 @@ from .masks.config import MasksConfig
 from .motions import estimate_motions, part_line
 from .options import add_flags, options_of, values_from_args
 from .labels import add_unit_arguments, import_labels, parse_range, read_label_file
+from .labels.prompts import find_prompts, import_prompts, read_prompt_file
 from .masks import propagate
 from .report import StageReport, read_report, warning_lines
 from .sfm import add_sfm_options, estimate_poses, sfm_options, summary_lines
@@ -57,11 +58,13 @@ def label_indices(labels_file: Path) -> list[int]:
 
 def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None = None,
             labels: str | Path | None = None, motions: bool = True, degrees: Any = None, cm: Any = None,
-            trust_labels: bool = False, **opts: Any) -> dict[str, Any]:
+            trust_labels: bool = False, prompts: str | Path | None = None, **opts: Any) -> dict[str, Any]:
     """Run the stages in order; each writes its own reports/<stage>.json, and reports/process.json collects their
     warnings. Returns the pose figures. With masks and labels, `motions` also measures each object's rigid motion
     (`interreal motions`; `trust_labels` as its --trust-labels). degrees / cm: physical label values, as
-    `interreal label --degrees / --cm`.
+    `interreal label --degrees / --cm`. `prompts`: the objects' descriptions for text grounding (prompts.yaml);
+    without it, the `prompts.yaml` beside the keyframes or labels (a capture's annotations) fills the objects that
+    have none.
 
     `opts`: the fields of `FramesConfig` (target, every, long_side, keep), of `MasksConfig` (work_long_side, flow,
     ...) and of `SfMConfig` (the rest; an unknown name is an InputError of the poses stage)."""
@@ -77,7 +80,12 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
         keep |= set(label_indices(Path(labels)))
     if labels is not None and (degrees is not None or cm is not None):
         parse_range(degrees, "degrees"), parse_range(cm, "cm")  # a malformed range fails now, not after SfM
+    prompt_file = Path(prompts) if prompts is not None else find_prompts(
+        Path(keyframes) if keyframes is not None else None, Path(labels) if labels is not None else None)
+    if prompt_file is not None:
+        read_prompt_file(prompt_file)  # a malformed file fails now, not after SfM
     settings = {"keyframes": str(keyframes) if keyframes else None, "labels": str(labels) if labels else None,
+                "prompts": str(prompt_file) if prompt_file else None,
                 **frames_opts, "motions": motions, "trust_labels": trust_labels, "degrees": degrees, "cm": cm,
                 **masks_opts, **sfm}
     ds.mkdir(parents=True, exist_ok=True)
@@ -104,6 +112,12 @@ def process(source: str | Path, ds: str | Path, *, keyframes: str | Path | None 
                 units = {k: v for k, v in (("degrees", degrees), ("cm", cm)) if v is not None}
                 import_labels(ds, Path(labels), **units, **({"replace": True} if replace else {}))
             _collect_warnings(rep, ds, "labels")
+        if prompt_file is not None:
+            with rep.step("prompts") as st:
+                st.update(import_prompts(ds, prompt_file, overwrite=prompts is not None))
+            for name, close in st["skipped"].items():
+                rep.warn(f"{prompt_file} describes {name!r}, which is not an object of the dataset"
+                         + (f" (did you mean {close!r}?)" if close else ""), cause="prompt-unknown-object")
         had_motions = read_report(ds, "motions") is not None
         if motions and ((kf_dir is not None and labels is not None) or had_motions):
             with rep.step("motions") as st:
@@ -123,6 +137,14 @@ def _collect_warnings(rep: StageReport, ds: Path, stage: str) -> None:
     for w in (read_report(ds, stage) or {}).get("warnings", []):
         entry = dict(w) if isinstance(w, dict) else {"message": str(w)}
         rep.warn(str(entry.pop("message", "")), cause=entry.pop("cause", None), **{**entry, "stage": stage})
+
+
+def prompts_line(f: dict[str, Any]) -> str:
+    """What the prompts step imported, and which objects text grounding finds by name alone."""
+    return (f"prompts: {len(f.get('imported', []))} description(s) from {f.get('file')}"
+            + (f"; found by name alone: {', '.join(f['without'])}" if f.get("without") else "")
+            + "".join(f"\n  warning: {f.get('file')} describes {n!r}, which is not an object"
+                      + (f" (did you mean {c!r}?)" if c else "") for n, c in (f.get("skipped") or {}).items()))
 
 
 def stage_summary(ds: Path, stage: str) -> str | None:
@@ -178,6 +200,9 @@ def add_arguments(p) -> None:
     add_flags(p.add_argument_group("frames"), FramesConfig)
     p.add_argument("--no-motions", dest="motions", action="store_false",
                    help="with --keyframes and --labels: skip measuring each object's rigid motion")
+    p.add_argument("--prompts", type=Path, metavar="FILE",
+                   help="object descriptions for text grounding (YAML: name: one line of what it is or does; "
+                        "default: the prompts.yaml beside --keyframes or --labels, for objects that have none)")
     p.add_argument("--trust-labels", action="store_true",
                    help="let the state labels calibrate each measured motion and refuse it when most disagree "
                         "(default: the geometry measures every frame's state, the labels only orient it)")
@@ -193,14 +218,18 @@ def add_arguments(p) -> None:
 def main(args) -> int:
     t0 = time.perf_counter()
     fig = process(args.input, args.dataset, keyframes=args.keyframes, labels=args.labels, motions=args.motions,
-                  trust_labels=args.trust_labels, degrees=args.degrees, cm=args.cm, **frames_options(args),
+                  trust_labels=args.trust_labels, prompts=args.prompts, degrees=args.degrees, cm=args.cm,
+                  **frames_options(args),
                   **values_from_args(MasksConfig, args),
                   **sfm_options(args))
-    ran = list((read_report(args.dataset, "process") or {}).get("steps", {}))
+    steps = (read_report(args.dataset, "process") or {}).get("steps", {})
     lines: list[str] = []
-    for stage in ran:  # each stage that ran: what it made, then its warnings
+    for stage in steps:  # each stage that ran: what it made, then its warnings
         if stage == "poses":
             lines += summary_lines(fig, args.dataset)
+            continue
+        if stage == "prompts":  # a step of process itself (no report of its own)
+            lines.append(prompts_line(steps[stage]))
             continue
         line = stage_summary(args.dataset, stage)
         lines += ([line] if line else []) + warning_lines(args.dataset, [stage])

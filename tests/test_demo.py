@@ -30,6 +30,15 @@ def test_demo_pipeline_tiny(tmp_path: Path):
     assert len(sweeps) == 2 and all(p.stat().st_size > 1000 for p in sweeps)
     table = (cfg.out / "demo.md").read_text()
     assert table == format_table(rows) + "\n"
+    # the README's grounding example on the demo's run: the capture's prompts travelled into the dataset
+    from interreal.dataset import read_prompts
+    from livescene import cli as livescene_cli
+
+    assert "keeps food cold" in read_prompts(cfg.out / "dataset").get("fridge door", "")
+    assert livescene_cli.main(["ground", str(cfg.out / "run"), "the thing that keeps food cold", "--out",
+                               str(tmp_path / "g")]) == 0
+    assert json.loads((tmp_path / "g" / "ground.json").read_text())["object"] == "fridge door"
+    assert livescene_cli.main(["ground", str(cfg.out / "run"), "the dishwasher"]) == 2  # not in the scene
     # a second run resumes: the capture is reused
     from interreal.demo import simulate
 

@@ -123,6 +123,38 @@ def test_run_index_is_cached_and_invalidated(run_dir, minilm):
     assert not list(run_dir.glob(".*.tmp"))  # atomic write left no temporary file
 
 
+def test_absent_objects_are_refused_present_ones_found_as_people_ask(minilm):
+    """The demo's scene (issue 60): "the dishwasher" went to the top drawer at 0.404; now it, and other things no
+    object here is, are refused with what they read as; functions, commands and names find their object, with and
+    without descriptions; the words of a name break a near tie (left / right)."""
+    from interreal.synth import SynthConfig, build_scene
+
+    scene = build_scene(SynthConfig(parts=10, frames=2, width=32, height=24))
+    names = scene.object_names[:2]  # fridge door, top drawer: the demo's
+    for descriptions in ({n: scene.descriptions[n] for n in names}, None):
+        index = ObjectIndex.build(names, descriptions, minilm)
+        for query in ("the dishwasher", "the TV", "the garage door", "a purple elephant"):
+            res = retrieve(index, query, minilm)
+            assert not res.ok, (query, res.table())
+        assert retrieve(index, "the dishwasher", minilm).reads_as == "dishwasher"
+        for query, expected in (("open the top drawer", "top drawer"), ("the fridge", "fridge door"),
+                                ("close the refrigerator", "fridge door"), ("the upper drawer", "top drawer")):
+            res = retrieve(index, query, minilm)
+            assert res.ok and res.best.name == expected, (query, res.table(), res.reads_as)
+    index = ObjectIndex.build(names, {n: scene.descriptions[n] for n in names}, minilm)
+    for query, expected in (("the thing that keeps food cold", "fridge door"),
+                            ("where the cutlery is kept", "top drawer")):
+        assert retrieve(index, query, minilm).best.name == expected
+    with pytest.raises(LiveSceneError, match="not in this scene") as err:
+        require_match(retrieve(index, "the dishwasher", minilm))
+    assert "fridge door" in str(err.value) and "top drawer" in str(err.value)  # the nearest, listed
+    doors = ObjectIndex.build(["wardrobe left door", "wardrobe right door"], None, minilm)
+    assert retrieve(doors, "close the right wardrobe door", minilm).best.name == "wardrobe right door"
+    assert retrieve(doors, "the left wardrobe door", minilm).best.name == "wardrobe left door"
+    with pytest.raises(InputError, match="names nothing"):
+        retrieve(index, "the of a", minilm)
+
+
 def test_names_without_descriptions(minilm):
     index = ObjectIndex.build(["door", "drawer"], None, minilm)
     assert retrieve(index, "the drawer", minilm).best.name == "drawer"

@@ -114,3 +114,56 @@ def test_process_flags_come_from_the_stage_configs(tmp_path, monkeypatch):
     assert calls["every"] == 2 and calls["long_side"] == 1600 and calls["target"] is None
     assert calls["work_long_side"] == 0 and calls["fusion"] is False and calls["preview"] == "both"
     assert calls["matcher"] == "exhaustive" and calls["sfm_long_side"] == 1000
+
+
+def test_a_captures_prompts_travel_into_the_dataset(tmp_path, monkeypatch):
+    """The `prompts.yaml` beside a capture's keyframes is imported with them (objects without a description only);
+    `--prompts FILE` replaces; a name that is not an object is skipped with the closest one; a malformed file
+    fails before any stage runs."""
+    from interreal.dataset import read_prompts, write_mapping
+    from interreal.errors import InputError
+
+    calls = []
+    monkeypatch.setattr(proc, "extract_frames", lambda src, ds, **kw: calls.append("frames") or [1])
+    monkeypatch.setattr(proc, "estimate_poses", lambda ds, **kw: {"registered": 1, "total": 1})
+    monkeypatch.setattr(proc, "propagate", lambda ds, kdir, **kw: write_mapping(ds, {0: "door", 1: "drawer"}))
+    monkeypatch.setattr(proc, "import_labels", lambda ds, f, **kw: None)
+    monkeypatch.setattr(proc, "estimate_motions", lambda ds, **kw: {"measured": 0})
+    ann = tmp_path / "cap" / "annotations"
+    (ann / "keyframes").mkdir(parents=True)
+    (ann / "keyframes" / "00000.png").write_text("x")
+    (ann / "states.yaml").write_text(yaml.safe_dump({"frame_00000": {"door": 0.0}}))
+    (ann / "prompts.yaml").write_text(yaml.safe_dump({"door": "the thing you walk through", "drawr": "a drawer"}))
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    (ds / "prompts.yaml").write_text(yaml.safe_dump({"door": "typed in the app"}))
+    proc.process("in.mp4", ds, keyframes=ann / "keyframes", labels=ann / "states.yaml")
+    assert read_prompts(ds) == {"door": "typed in the app"}  # found beside the keyframes: fills only what is missing
+    rep = json.loads((ds / "reports" / "process.json").read_text())
+    step = rep["steps"]["prompts"]
+    assert step["without"] == ["drawer"] and step["skipped"] == {"drawr": "drawer"}
+    assert any(w["cause"] == "prompt-unknown-object" and "did you mean 'drawer'" in w["message"] for w in rep["warnings"])
+    mine = tmp_path / "mine.yaml"
+    mine.write_text(yaml.safe_dump({"door": "the front door", "drawer": "where the forks are"}))
+    proc.process("in.mp4", ds, keyframes=ann / "keyframes", labels=ann / "states.yaml", prompts=mine)
+    assert read_prompts(ds) == {"door": "the front door", "drawer": "where the forks are"}
+    assert "prompts: 2 description(s)" in proc.prompts_line(
+        json.loads((ds / "reports" / "process.json").read_text())["steps"]["prompts"])
+    calls.clear()
+    mine.write_text("door: [not, text]\n")
+    with pytest.raises(InputError, match="description of 'door'"):
+        proc.process("in.mp4", ds, keyframes=ann / "keyframes", prompts=mine)
+    assert calls == []
+
+
+def test_validate_names_the_objects_text_finds_by_name_alone(tmp_path):
+    from conftest import make_tiny_dataset
+
+    from interreal.dataset import validate, write_prompts
+
+    ds = make_tiny_dataset(tmp_path / "ds", n_objects=2)
+    names = validate(ds).summary["objects"]
+    write_prompts(ds, {names[0]: "what keeps food cold"})
+    res = validate(ds)
+    assert res.ok and res.summary["described"] == 1
+    assert any(f"no description of {names[1]!r}" in w and "by name alone" in w for w in res.warnings), res.warnings

@@ -15,12 +15,14 @@ import yaml
 
 from ..conventions import frame_id, frame_index, mask_file
 from ..errors import DatasetError
-from ..layout import ARTICULATION_FILE, IMAGES_DIR, LABELS_FILE, MAPPING_FILE, REPORTS_DIR, TRANSFORMS_FILE
+from ..layout import (ARTICULATION_FILE, IMAGES_DIR, LABELS_FILE, MAPPING_FILE, PROMPTS_FILE, REPORTS_DIR,
+                      TRANSFORMS_FILE)
 from ..provenance import stale_stages
 from ..transients import TRANSIENTS_DIR, problems as transient_problems
 from ..images import image_size, list_images
 from .official import is_official_data, raw_value_ok
-from .io import label_value_problem, npy_header, pose_matrix, read_articulation, read_yaml, resolve_blender_path
+from .io import (label_value_problem, npy_header, pose_matrix, read_articulation, read_prompts, read_yaml,
+                 resolve_blender_path)
 from .types import CAMERA_MODELS, DISTORTION_KEYS, INTRINSIC_KEYS
 
 
@@ -81,6 +83,14 @@ def validate(root: str | Path, check_masks: bool = True) -> ValidationResult:
     if unposed:
         warnings.append(f"{LABELS_FILE} labels frame(s) {', '.join(map(str, sorted(unposed)))} that have no camera "
                         f"pose (SfM did not register them): those labels are not used; label a registered frame instead")
+    prompts = _read_prompts_or_none(root, add)
+    undescribed = [n for n in summary["objects"] if not prompts.get(n)] if mapping and prompts is not None else []
+    summary["described"] = len(summary["objects"]) - len(undescribed)
+    if undescribed:
+        warnings.append(f"{PROMPTS_FILE} has no description of {', '.join(repr(n) for n in undescribed)}: text "
+                        f"grounding finds them by name alone (\"the fridge\", not \"what keeps food cold\"); add "
+                        f"one with `interreal label DS --describe NAME TEXT`, in the annotate app, or "
+                        f"`interreal process ... --prompts FILE`")
     sizes = _validate_images(root, frames, meta, add, decode=check_masks)
     summary["size"] = sorted({f"{w}x{h}" for (w, h) in sizes.values()})
     _validate_masks(root, frames, mapping, sizes, add, pixels=check_masks)
@@ -451,6 +461,15 @@ def format_summary(result: ValidationResult) -> str:
     for name, n in s.get("labels_per_object", {}).items():
         lines.append(f"    - {name}: {n} labelled frames")
     return "\n".join(lines)
+
+
+def _read_prompts_or_none(root: Path, add) -> dict[str, str] | None:
+    """DS/prompts.yaml, or None (and a `bad-prompts` problem) when it cannot be read."""
+    try:
+        return read_prompts(root)
+    except (DatasetError, OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        add("bad-prompts", root / PROMPTS_FILE, f"unreadable ({exc}); it maps object names to one-line descriptions")
+        return None
 
 
 def format_problems(result: ValidationResult, per_kind: int = 0) -> str:

@@ -16,7 +16,7 @@ from interreal.errors import InputError
 from interreal.report import StageReport
 
 from ..data import require_valid_run_dataset
-from ..language.commands import Command, ground_query, parse_command
+from ..language.commands import Command, ground_query, object_texts, parse_command
 from ..language.encoders import check_extra, get_encoder
 from ..language.grounding import check_run_has_masks, frame_views, render_mask, write_view
 from ..language.retrieval import Candidate, RetrievalConfig, check_query, require_match
@@ -70,11 +70,17 @@ def main(args: argparse.Namespace) -> int:
     encoder = get_encoder(args.encoder)
     config = RetrievalConfig(threshold=args.threshold)
     result = ground_query(args.run, cmd.query if cmd else query, encoder=encoder, config=config)
+    names, descs = object_texts(args.run)
+    bare = [n for n in names if not (descs or {}).get(n)]  # grounded by their names alone: said, not hidden
     payload: dict[str, Any] = {"run": str(args.run), "input": query, **result.to_json(),
                                "command": {"verb": cmd.verb, "value": cmd.value} if cmd else None,
-                               "encoder": encoder.id, "mask_threshold": args.mask_threshold, "views": []}
+                               "encoder": encoder.id, "mask_threshold": args.mask_threshold, "views": [],
+                               "by_name_alone": bare}
     if not args.json:
         print(f"query {result.query!r} ({encoder.id}):\n{result.table(args.top)}")
+        if bare:
+            print(f"note: no description of {', '.join(repr(n) for n in bare)} (prompts.yaml): found by name alone; "
+                  f"describe them with `interreal label DS --describe NAME TEXT`")
     if not result.ok:
         if args.out:
             atomic.write_json(args.out / "ground.json", payload)

@@ -608,3 +608,32 @@ def assert_right(ds: Path, reference: Path) -> None:
 
 def names(folder: Path) -> list[str]:
     return sorted(p.name for p in folder.iterdir())
+
+
+def test_a_keyframe_drawn_on_another_frame_is_refused(tmp_path):
+    """A LabelMe file whose embedded picture is frame 15 but which is named for frame 0 was taken as good (its true
+    IoU 0.00 on every frame): refused, naming the frame it was drawn on. The same picture re-encoded passes."""
+    import base64
+
+    import cv2
+
+    from interreal.errors import InputError
+    from interreal.masks.keyframes import load_keyframes
+
+    rng = np.random.default_rng(0)
+    base = cv2.resize(rng.uniform(0, 255, (12, 16, 3)).astype(np.uint8), (64, 48), interpolation=cv2.INTER_CUBIC)
+    frames = {f"{i:05d}": np.roll(base, 3 * i, axis=1) for i in range(0, 30, 3)}  # a camera panning
+
+    def embed(img: np.ndarray) -> str:
+        return base64.b64encode(cv2.imencode(".jpg", img[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 92])[1]).decode()
+
+    shapes = [{"label": "door", "shape_type": "polygon", "points": [[5, 5], [30, 5], [30, 30], [5, 30]]}]
+    kf = tmp_path / "kf"
+    atomic.write_json(kf / "00000.json", {"shapes": shapes, "imageData": embed(frames["00015"]),
+                                          "imageWidth": 64, "imageHeight": 48})
+    with pytest.raises(InputError, match=r"drawn on frame 00015 .* named for frame 00000.*rename it to 00015\.json"):
+        load_keyframes(kf, list(frames), (64, 48), {0: "door"}, image_of=frames.__getitem__)
+    atomic.write_json(kf / "00000.json", {"shapes": shapes, "imageData": embed(frames["00000"]),
+                                          "imageWidth": 64, "imageHeight": 48})
+    kfs = load_keyframes(kf, list(frames), (64, 48), {0: "door"}, image_of=frames.__getitem__)
+    assert (kfs.masks["00000"] == 1).sum() > 400

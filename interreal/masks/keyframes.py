@@ -98,6 +98,8 @@ def load_keyframes(folder: str | Path, frame_ids: list[str], size: tuple[int, in
         if p.suffix.lower() == ".png":
             masks[fid] = _read_png(p, size, names, dir_map)
         else:
+            if image_of is not None:
+                check_drawn_on(p, fid, frame_ids, image_of)
             masks[fid] = labelme.rasterise(p, size, names, (lambda f=fid: image_of(f)) if image_of else None)
         if whole_frame(masks[fid] == IGNORE):
             raise InputError(f"{p}: the ignore class (person / hand) covers the whole of frame {fid}, leaving "
@@ -107,6 +109,39 @@ def load_keyframes(folder: str | Path, frame_ids: list[str], size: tuple[int, in
             raise InputError(f"object '{name}' (id {k}) is drawn on no keyframe: annotate it on at least one frame, "
                              f"or remove it from mapping.yaml")
     return Keyframes(masks, names, {fid: p.name for fid, p in by_fid.items()})
+
+
+THUMB = 160  # pictures are compared this wide, in grey levels
+SAME_LEVELS = 3.0  # mean absolute difference (grey levels) within which two pictures are one frame re-encoded
+
+
+def _thumb(rgb: np.ndarray, aspect: float) -> np.ndarray:
+    h = max(8, int(round(THUMB * aspect)))
+    return cv2.resize(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY), (THUMB, h),
+                      interpolation=cv2.INTER_AREA).astype(np.float32)
+
+
+def check_drawn_on(path: Path, fid: str, frame_ids: list[str], image_of) -> None:
+    """InputError when a LabelMe file's embedded picture (what was drawn on) is another frame than the one it is
+    named for: its shapes would mask the wrong pixels on every frame propagated from it. The named frame is checked
+    first (one read); only when it differs are all frames compared, and only a clearly better match is refused."""
+    picture = labelme.embedded_image(labelme.read_doc(path))
+    if picture is None:
+        return
+    named = image_of(fid)
+    aspect = named.shape[0] / named.shape[1]
+    if not same_aspect((picture.shape[1], picture.shape[0]), (named.shape[1], named.shape[0])):
+        return  # _scale names the other aspect ratio
+    drawn = _thumb(picture, aspect)
+    here = float(np.abs(drawn - _thumb(named, aspect)).mean())
+    if here <= SAME_LEVELS:
+        return
+    diffs = {f: float(np.abs(drawn - _thumb(image_of(f), aspect)).mean()) for f in frame_ids if f != fid}
+    best = min(diffs, key=diffs.get) if diffs else None
+    if best is not None and diffs[best] <= SAME_LEVELS < here and diffs[best] < 0.5 * here:
+        raise InputError(f"{path}: drawn on frame {best} (its embedded picture is that frame: {diffs[best]:.1f} grey "
+                         f"levels apart) but named for frame {fid} ({here:.1f} levels apart): rename it to "
+                         f"{best}{path.suffix}, or draw it again on frame {fid}")
 
 
 def _read_png(path: Path, size: tuple[int, int], names: list[str], dir_map: dict[int, str]) -> np.ndarray:

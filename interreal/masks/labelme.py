@@ -10,6 +10,7 @@ Shapes drawn on the source video (another size, same aspect ratio) are scaled to
 
 from __future__ import annotations
 
+import base64
 import json
 from pathlib import Path
 from typing import Callable
@@ -38,6 +39,20 @@ def read_doc(path: Path) -> dict:
     if not isinstance(doc, dict) or not isinstance(doc.get("shapes"), list):
         raise InputError(f"{path}: LabelMe JSON needs a 'shapes' list")
     return doc
+
+
+def embedded_image(doc: dict) -> np.ndarray | None:
+    """The RGB image a LabelMe file embeds (`imageData`, base64 PNG / JPEG), or None when it has none or it does
+    not decode: what the person actually drew on."""
+    data = doc.get("imageData")
+    if not isinstance(data, str) or not data:
+        return None
+    try:
+        raw = np.frombuffer(base64.b64decode(data, validate=False), np.uint8)
+    except (ValueError, TypeError):
+        return None
+    img = cv2.imdecode(raw, cv2.IMREAD_COLOR) if raw.size else None
+    return None if img is None else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def object_labels(paths: list[Path]) -> list[str]:

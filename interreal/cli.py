@@ -53,6 +53,14 @@ def run_cli(prog: str, commands: dict[str, tuple[str, str]], epilog: str, argv: 
         return _run_cli(prog, commands, epilog, argv, error_types)
     except BrokenPipeError:
         return _reader_went_away()
+    except KeyboardInterrupt as exc:  # Ctrl-C while the command's modules load (torch takes seconds): one line
+        return _interrupted(prog, exc)
+
+
+def _interrupted(prog: str, exc: KeyboardInterrupt) -> int:
+    """One line for Ctrl-C or SIGTERM (what the command saved is in its message); 130 / 143 as a shell reports."""
+    print(f"{prog}: {str(exc) or 'interrupted'}", file=sys.stderr)
+    return 143 if type(exc).__name__ == "Terminated" else 130
 
 
 def _run_cli(prog: str, commands: dict[str, tuple[str, str]], epilog: str, argv: Sequence[str] | None,
@@ -92,9 +100,8 @@ def _run_cli(prog: str, commands: dict[str, tuple[str, str]], epilog: str, argv:
     except error_types as exc:
         print(f"{prog} {name}: error: {exc}", file=sys.stderr)
         return int(getattr(exc, "exit_code", 2))
-    except KeyboardInterrupt:
-        print(f"{prog} {name}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        return _interrupted(f"{prog} {name}", exc)
     except OSError as exc:
         if isinstance(exc, BrokenPipeError) or exc.errno not in SYSTEM_ERRNOS:
             raise

@@ -72,6 +72,11 @@ def finished_with(root: str | Path, stage: str, resume_key: str) -> dict[str, An
     return rep
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler, `docker stop`, `timeout`) turned into an exception by a long command, so it stops as on
+    Ctrl-C: its work saved, its report "interrupted", its locks released (`livescene train`)."""
+
+
 class StageReport:
     """Collects what a stage did; use as a context manager around the stage's work.
 
@@ -140,6 +145,9 @@ class StageReport:
         self.data["wall_s"] = round(time.perf_counter() - self._t0, 3)
         if exc is None:
             self.data["status"] = "ok"
+        elif issubclass(exc_type, KeyboardInterrupt):  # Ctrl-C, or SIGTERM turned into one (`interrupt_on_sigterm`)
+            self.data["status"] = "interrupted"
+            self.data["error"] = str(exc) or "interrupted (Ctrl-C)"
         else:
             self.data["status"] = "failed"
             self.data["error"] = f"{exc_type.__name__}: {exc}"

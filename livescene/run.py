@@ -139,6 +139,25 @@ def checkpoint_config(ckpt: dict) -> TrainConfig:
     return cfg
 
 
+def unfinished_note(run_dir: str | Path, step: int | None = None) -> str | None:
+    """One line when the run's training did not finish (interrupted, failed, or killed while "running"): the
+    commands that read it say they use its last checkpoint; None for a finished run (or one without a report)."""
+    import json
+
+    try:
+        rep = json.loads((Path(run_dir) / "reports" / "train.json").read_text())
+    except (OSError, ValueError):
+        return None
+    status = rep.get("status")
+    if status == "ok":
+        return None
+    at = f" (its last checkpoint, step {step}, is used)" if step is not None else ""
+    why = {"interrupted": "was interrupted", "failed": f"failed ({rep.get('error', '?')})",
+           "running": "is still training, or was killed"}.get(str(status), f"ended as {status!r}")
+    return (f"note: {run_dir}'s training {why}{at}; continue it with "
+            f"`livescene train DS --out {run_dir} --resume`")
+
+
 def load_run(run_dir: str | Path, device: str = "auto", checkpoint: str | int | None = None,
              dataset: str | Path | None = None) -> Run:
     """Reopen a run: its model at the latest (or given) checkpoint, its dataset views and config."""

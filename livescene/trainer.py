@@ -31,7 +31,7 @@ from tqdm import tqdm
 
 from interreal import atomic
 from interreal.dataset import Intrinsics
-from interreal.report import StageReport, read_report
+from interreal.report import StageReport, Terminated, read_report
 
 from . import losses as L
 from .articulation import fit_hulls
@@ -166,8 +166,14 @@ class Trainer:
         self._ckpt_s = 0.0
         self._grid_s = 0.0  # the occupancy grid built after the last step (estimated up front with a time limit)
         self.eval_cursor = 0
+        self._saved_step = -1  # the step of the newest checkpoint on disk (-1: none yet)
+        self.stop_signal: str | None = None  # set by `stop_signals` while training: stop after the current step
+        self.in_loop = False  # between the first and the last step (where a stop can wait for the step to end)
+        self.resumed_from: tuple[int, str | None] | None = None  # (step, the run's report status before)
         if resume_ckpt is not None:
             self._restore(resume_ckpt)
+            self._saved_step = self.step
+            self.resumed_from = (self.step, (read_report(self.run_dir, "train") or {}).get("status"))
             self.overhead = float(resume_ckpt["meta"].get("overhead_s", 0.0))
             self._eval_s_per_px = float(resume_ckpt["meta"].get("eval_s_per_px", 0.0))
 
@@ -213,6 +219,7 @@ class Trainer:
         t0 = self.clock()
         path = write_checkpoint(self.run_dir, self.step, self._state(), self.cfg.keep_checkpoints)
         self._ckpt_s = self.clock() - t0
+        self._saved_step = self.step
         return path
 
     def _rollback(self, reason: str) -> None:
@@ -370,53 +377,22 @@ class Trainer:
         return {"psnr": float(np.mean(scores)), "frames": [int(i) for i in frames], "max_side": side,
                 "frame_psnr": [round(float(v), 3) for v in scores], "held_out": bool(self.views.held_out)}
 
-    # -- loop ----------------------------------------------------------------------------------------------------
-    def fit(self) -> dict[str, Any]:
+    def _loop(self, bar, trial, acc: dict[str, list[float]], last: dict[str, Any], t_start: float,
+              overhead_start: float) -> dict[str, Any]:
+        """The training steps until `cfg.steps` or the time limit; returns the last train log record (with
+        "_stop": "max-minutes" when the clock stopped it)."""
+        self.in_loop = True
+        try:
+            return self._steps(bar, trial, acc, last, t_start, overhead_start)
+        finally:
+            self.in_loop = False
+
+    def _steps(self, bar, trial, acc: dict[str, list[float]], last: dict[str, Any], t_start: float,
+               overhead_start: float) -> dict[str, Any]:
         cfg = self.cfg
-        ds = self.views.dataset
-        with writing(self.run_dir / "config.yaml"):
-            self.run_dir.mkdir(parents=True, exist_ok=True)
-            atomic.write_yaml(self.run_dir / "config.yaml", {"dataset": str(self.dataset_path), **cfg.to_dict()})
-            atomic.write_yaml(self.run_dir / "objects.yaml", {"objects": [
-                {"id": i, "name": n, "description": ds.prompts.get(n, "")} for i, n in enumerate(ds.object_names)]})
-        last = self._truncate_metrics()  # a resume trains the steps past its checkpoint again: no duplicates
-        params = self.model.param_count()
-        m = cfg.model
-        print(f"livescene train: {len(self.views.train)} train / {len(self.views.held_out)} held-out frames at "
-              f"{self.data.w}x{self.data.h}, {ds.n_objects} objects, device {describe(self.device)}\n"
-              f"  model: {params:,} parameters (planes {m.resolution}x{m.scales} k={m.k_resolution} "
-              f"f={m.features}; proposals {m.proposal_resolutions}; variable {m.var_resolution} nodes; box from "
-              f"{self.views.box_source}; samples from {cfg.sampler.near:g} in front of a camera"
-              + (f"; per-frame appearance {m.appearance}" if self.model.appearance is not None else "") + ")",
-              flush=True)
-        if self.model.motions is not None:
-            rigid = [self.views.names[o] for o in self.model.motions.rigid(ds.n_objects)]
-            print(f"  rigid parts (articulation.json): {', '.join(rigid)}; read at k = {m.part_k}", flush=True)
-        measured = measured_counts(self.views) if self.cfg.measured_states else {}
-        if measured:
-            print("  states measured by `interreal motions` (Lvar's targets there, over the labels): "
-                  + ", ".join(f"{name} {n} frames" for name, n in measured.items()), flush=True)
-        if self.step == 0:
-            self.save_checkpoint()
-        if self.max_minutes and not self._grid_s:
-            self._grid_s = build_cost(self.model, self.box, clock=self.clock)
-        if self.max_minutes and not self._eval_s_per_px:  # a time limit needs the final evaluation's cost up front
-            first = self.quick_frame
-            self.heldout_psnr(first, WARM_SIDE)  # untimed: on CUDA the first render loads kernels for seconds
-            self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2),
-                       "psnr": self._timed_psnr(first), "frame": int(first)})
-        if self._t_init is not None:  # loading, setting up and that first render, once per process
-            self.overhead += self.clock() - self._t_init
-            self._t_init = None
-        t_start = self.clock() - self.elapsed
-        overhead_start = self.overhead  # evaluations and checkpoints in the loop add to it; elapsed leaves them out
-        acc: dict[str, list[float]] = {}
-        bar = tqdm(total=cfg.steps, initial=self.step, desc="train", disable=not self.show_progress,
-                   dynamic_ncols=True, unit="step")
-        stop_reason = "steps"
-        self.model.train()
-        trial = ThreadTrial(os.cpu_count() or 1) if getattr(self, "measure_threads", False) else None
         while self.step < cfg.steps:
+            if self.stop_signal:  # asked to stop: here, between two steps, the model and optimizer agree
+                raise Terminated("terminated (SIGTERM)") if self.stop_signal == "SIGTERM" else KeyboardInterrupt()
             t_step = self.clock()
             if trial is not None:
                 trial.before_step()
@@ -454,8 +430,79 @@ class Trainer:
                 self.save_checkpoint()
                 self.overhead += self.clock() - t0
             if self.max_minutes and self.elapsed >= self.train_budget():
-                stop_reason = "max-minutes"
+                last["_stop"] = "max-minutes"
                 break
+        return last
+
+    def _interrupted(self, exc: KeyboardInterrupt) -> KeyboardInterrupt:
+        """Save the steps trained since the last checkpoint (an interrupted save leaves the one before: writes are
+        atomic) and say where the run stands, for the report and the command's one line."""
+        try:
+            if self.step != self._saved_step:
+                self.save_checkpoint()
+            saved = f"checkpoint at step {self.step} saved"
+        except (OSError, KeyboardInterrupt) as again:  # a second Ctrl-C, or a full disk: the last checkpoint stays
+            saved = f"not saved ({type(again).__name__}); the last checkpoint, step {self._saved_step}, stays"
+        return type(exc)(f"{str(exc) or 'interrupted (Ctrl-C)'} at step {self.step} of {self.cfg.steps}: {saved}; "
+                         f"continue with `livescene train DS --out {self.run_dir} --resume`")
+
+    # -- loop ----------------------------------------------------------------------------------------------------
+    def fit(self) -> dict[str, Any]:
+        cfg = self.cfg
+        ds = self.views.dataset
+        with writing(self.run_dir / "config.yaml"):
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            atomic.write_yaml(self.run_dir / "config.yaml", {"dataset": str(self.dataset_path), **cfg.to_dict()})
+            atomic.write_yaml(self.run_dir / "objects.yaml", {"objects": [
+                {"id": i, "name": n, "description": ds.prompts.get(n, "")} for i, n in enumerate(ds.object_names)]})
+        last = self._truncate_metrics()  # a resume trains the steps past its checkpoint again: no duplicates
+        params = self.model.param_count()
+        m = cfg.model
+        print(f"livescene train: {len(self.views.train)} train / {len(self.views.held_out)} held-out frames at "
+              f"{self.data.w}x{self.data.h}, {ds.n_objects} objects, device {describe(self.device)}\n"
+              f"  model: {params:,} parameters (planes {m.resolution}x{m.scales} k={m.k_resolution} "
+              f"f={m.features}; proposals {m.proposal_resolutions}; variable {m.var_resolution} nodes; box from "
+              f"{self.views.box_source}; samples from {cfg.sampler.near:g} in front of a camera"
+              + (f"; per-frame appearance {m.appearance}" if self.model.appearance is not None else "") + ")",
+              flush=True)
+        if self.resumed_from is not None and self._t_init is not None:
+            step, before = self.resumed_from
+            print(f"  resuming from step {step} of {cfg.steps}" + {
+                "interrupted": " (the run was interrupted)", "failed": " (the run had failed)",
+                "running": " (the run was killed)"}.get(str(before), ""), flush=True)
+        if self.model.motions is not None:
+            rigid = [self.views.names[o] for o in self.model.motions.rigid(ds.n_objects)]
+            print(f"  rigid parts (articulation.json): {', '.join(rigid)}; read at k = {m.part_k}", flush=True)
+        measured = measured_counts(self.views) if self.cfg.measured_states else {}
+        if measured:
+            print("  states measured by `interreal motions` (Lvar's targets there, over the labels): "
+                  + ", ".join(f"{name} {n} frames" for name, n in measured.items()), flush=True)
+        if self.step == 0:
+            self.save_checkpoint()
+        if self.max_minutes and not self._grid_s:
+            self._grid_s = build_cost(self.model, self.box, clock=self.clock)
+        if self.max_minutes and not self._eval_s_per_px:  # a time limit needs the final evaluation's cost up front
+            first = self.quick_frame
+            self.heldout_psnr(first, WARM_SIDE)  # untimed: on CUDA the first render loads kernels for seconds
+            self._log({"type": "eval", "step": self.step, "elapsed_s": round(self.elapsed, 2),
+                       "psnr": self._timed_psnr(first), "frame": int(first)})
+        if self._t_init is not None:  # loading, setting up and that first render, once per process
+            self.overhead += self.clock() - self._t_init
+            self._t_init = None
+        t_start = self.clock() - self.elapsed
+        overhead_start = self.overhead  # evaluations and checkpoints in the loop add to it; elapsed leaves them out
+        acc: dict[str, list[float]] = {}
+        bar = tqdm(total=cfg.steps, initial=self.step, desc="train", disable=not self.show_progress,
+                   dynamic_ncols=True, unit="step")
+        stop_reason = "steps"
+        self.model.train()
+        trial = ThreadTrial(os.cpu_count() or 1) if getattr(self, "measure_threads", False) else None
+        try:
+            last = self._loop(bar, trial, acc, last, t_start, overhead_start)
+        except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: keep every step trained so far
+            bar.close()
+            raise self._interrupted(exc) from None
+        stop_reason = last.pop("_stop", "steps")
         bar.close()
         t0 = self.clock()
         # once, for the final model: saved with its checkpoint, renders skip air
@@ -485,11 +532,13 @@ def train(dataset: str | Path, out: str | Path, cfg: TrainConfig, device: str = 
     it holds a checkpoint (refused input, disk full, permissions): no half run is left behind."""
     out = Path(out)
     created = not out.exists()
+    holder: list[Trainer] = []
     try:
-        with run_lock(out):
+        with run_lock(out), stop_signals(holder):
             remove_stale_temporaries(out)
             trainer = Trainer(dataset, out, cfg, device=device, resume=resume, max_minutes=max_minutes,
                               show_progress=show_progress)
+            holder.append(trainer)
             done = finished_summary(trainer) if resume else None
             if done is not None:
                 return done
@@ -499,6 +548,35 @@ def train(dataset: str | Path, out: str | Path, cfg: TrainConfig, device: str = 
         if created and out.is_dir() and not checkpoint_files(out):
             shutil.rmtree(out, ignore_errors=True)  # refused, or nothing resumable written: leave no half run behind
         raise
+
+
+@contextlib.contextmanager
+def stop_signals(holder: list["Trainer"]):
+    """Ctrl-C and SIGTERM while training stop it after the current step (`Trainer._loop` raises there, the trainer
+    saves a checkpoint); a second one, or one during loading, stops at once. Main thread only (elsewhere signals
+    cannot be caught, and nothing changes)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):  # noqa: ARG001 - the signal module's signature
+        name = "SIGTERM" if signum == signal.SIGTERM else "Ctrl-C"
+        trainer = holder[0] if holder else None
+        if trainer is not None and trainer.in_loop and trainer.stop_signal is None:
+            trainer.stop_signal = name
+            print(f"\nlivescene train: {name}: stopping after this step (again to stop at once)", file=sys.stderr)
+            return
+        raise Terminated("terminated (SIGTERM)") if name == "SIGTERM" else KeyboardInterrupt()
+
+    before = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in before.items():
+            signal.signal(s, h)
 
 
 def _train(trainer: "Trainer", out: Path) -> dict[str, Any]:

@@ -585,3 +585,38 @@ def test_kill_and_resume(tmp_path):
     report = json.loads((run / "reports" / "train.json").read_text())
     assert report["status"] == "ok" and report["figures"]["train_psnr"] is not None
     assert not list(run.rglob("*.tmp"))
+
+
+@pytest.mark.parametrize("sig,code,word", [(signal.SIGTERM, 143, "terminated (SIGTERM)"),
+                                           (signal.SIGINT, 130, "interrupted (Ctrl-C)")])
+def test_sigterm_and_ctrl_c_save_the_steps_and_say_where_the_run_stands(tmp_path, sig, code, word):
+    """SIGTERM (a scheduler, `timeout`, `docker stop`) killed training at once: no message, the report left
+    "running", up to `ckpt_every` steps lost. Now both it and Ctrl-C stop after the current step with a checkpoint
+    there, the report says "interrupted" and how to continue, `--resume` says where it resumes, and `render` of the
+    interrupted run says it is one."""
+    ds = toy_dataset(tmp_path / "ds", n_frames=10, size=(16, 12))
+    run = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "livescene", "train", str(ds), "--out", str(run), "--preset", "tiny", "--steps",
+           "60", "--seed", "3", "--device", "cpu", "--threads", "1", "--no-progress", "--set", "ckpt_every=1000",
+           "--set", "log_every=2", "--set", "eval_every=0", "--set", "final_eval_frames=1"]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while _last_step(run / "metrics.jsonl") < 7 and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.02)
+    assert proc.poll() is None, proc.stderr.read()[-2000:]
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == code, err[-2000:]
+    assert "Traceback" not in err and word in err and "--resume" in err, err[-2000:]
+    report = json.loads((run / "reports" / "train.json").read_text())
+    assert report["status"] == "interrupted" and word in report["error"], report
+    saved = max(int(p.stem.split("_")[1]) for p in (run / "checkpoints").glob("step_*.pt"))
+    assert 7 <= saved < 60 and f"at step {saved} of 60: checkpoint at step {saved} saved" in report["error"]
+    more = subprocess.run(cmd + ["--resume"], env=env, capture_output=True, text=True, timeout=300)
+    assert more.returncode == 0 and f"resuming from step {saved} of 60 (the run was interrupted)" in more.stdout
+    report["status"] = "interrupted"  # as if this run, too, had been stopped: `render` says so
+    (run / "reports" / "train.json").write_text(json.dumps(report))
+    shown = subprocess.run([sys.executable, "-m", "livescene", "render", str(run), "--device", "cpu", "--frames",
+                            "0", "--out", str(tmp_path / "r")], env=env, capture_output=True, text=True, timeout=120)
+    assert "training was interrupted (its last checkpoint, step" in shown.stderr, shown.stderr[-2000:]

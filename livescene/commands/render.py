@@ -18,7 +18,7 @@ from ..errors import LiveSceneError, writing
 from ..language import apply_command
 from ..render import (RenderMeter, choose_cameras, colorize_depth, colorize_probs, parse_states, parse_sweep,
                       read_camera_path, render_view, smooth_path, warn_unseen)
-from ..run import load_run
+from ..run import load_run, unfinished_note
 
 
 def add_arguments(p) -> None:
@@ -65,6 +65,8 @@ def main(args) -> int:
     check_render_args(args)
     base_states = parse_states(args.state)  # before the run loads: a bad state costs nothing
     run = load_run(args.run, device=args.device, dataset=args.dataset)
+    if note := unfinished_note(args.run, run.step):
+        print(note, file=sys.stderr)
     views = run.views
     unknown = [n for n in base_states if n not in run.names]
     if unknown:

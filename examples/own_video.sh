@@ -16,9 +16,14 @@ interreal annotate "$DS"            # prints a URL with a one-time token; open i
 
 # 3. poses: pycolmap SfM with the object pixels masked out
 interreal poses "$DS"
+
+# 4. motions: each part's hinge or slide measured from its own pixels, so it moves from every view; the labels
+#    only say which end is closed, and a label the geometry disagrees with is named (fix it in the app, one click)
+interreal motions "$DS"
+interreal label "$DS" --describe "fridge door" "the thing that keeps food cold"   # text finds it by what it does
 interreal validate "$DS"
 
-# 4. train, then render the fridge half open, and a sweep of the drawer
+# 5. train, then render the fridge half open, and a sweep of the drawer
 livescene train "$DS" --out "$DS.run"
 livescene render "$DS.run" --state "fridge door=0.5" --out "$DS.renders"
 livescene render "$DS.run" --sweep "top drawer=0:1:30" --video "$DS.renders/drawer.mp4"

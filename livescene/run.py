@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import io
+import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -142,8 +143,6 @@ def checkpoint_config(ckpt: dict) -> TrainConfig:
 def unfinished_note(run_dir: str | Path, step: int | None = None) -> str | None:
     """One line when the run's training did not finish (interrupted, failed, or killed while "running"): the
     commands that read it say they use its last checkpoint; None for a finished run (or one without a report)."""
-    import json
-
     try:
         rep = json.loads((Path(run_dir) / "reports" / "train.json").read_text())
     except (OSError, ValueError):

@@ -19,7 +19,9 @@ import math
 import os
 import random
 import shutil
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -555,9 +557,6 @@ def stop_signals(holder: list["Trainer"]):
     """Ctrl-C and SIGTERM while training stop it after the current step (`Trainer._loop` raises there, the trainer
     saves a checkpoint); a second one, or one during loading, stops at once. Main thread only (elsewhere signals
     cannot be caught, and nothing changes)."""
-    import signal
-    import threading
-
     if threading.current_thread() is not threading.main_thread():
         yield
         return

@@ -29,6 +29,23 @@ from .layout import (  # noqa: F401 - the layout's names, also reachable here as
     TRANSFORMS_FILE,
 )
 
+FORBIDDEN_NAME_CHARS = ("=", "\n", "\r", "\t")  # '=' separates name and value in --state NAME=VALUE
+MAX_NAME_LENGTH = 100
+
+
+def object_name_problem(name: object) -> str | None:
+    """Why `name` cannot name an object (what every command that takes names refuses), or None when it can."""
+    text = str(name).strip() if name is not None else ""
+    if not text:
+        return "an object needs a non-empty name"
+    bad = [c for c in FORBIDDEN_NAME_CHARS if c in text]
+    if bad:
+        return f"object name {text!r} contains {bad!r}; '=' separates name and value in --state NAME=VALUE"
+    if len(text) > MAX_NAME_LENGTH:
+        return f"object name {text[:20]!r}... is longer than {MAX_NAME_LENGTH} characters"
+    return None
+
+
 FRAME_PREFIX = "frame_"
 FRAME_DIGITS = 5
 UNANNOTATED = 255  # keyframe index-mask value for "not annotated"

@@ -637,3 +637,15 @@ def test_a_keyframe_drawn_on_another_frame_is_refused(tmp_path):
                                           "imageWidth": 64, "imageHeight": 48})
     kfs = load_keyframes(kf, list(frames), (64, 48), {0: "door"}, image_of=frames.__getitem__)
     assert (kfs.masks["00000"] == 1).sum() > 400
+
+
+def test_a_labelme_name_the_label_commands_refuse_is_refused_where_it_comes_in(tmp_path):
+    """`masks` let a LabelMe label `door=left` into mapping.yaml; every label command then refused the name."""
+    from interreal.errors import InputError
+    from interreal.masks.keyframes import load_keyframes
+
+    kf = tmp_path / "kf"
+    atomic.write_json(kf / "00000.json", {"shapes": [{"label": "door=left", "shape_type": "polygon",
+                                                      "points": [[1, 1], [9, 1], [9, 9]]}]})
+    with pytest.raises(InputError, match=r"a LabelMe label in .*'door=left' contains \['='\].*rename it there"):
+        load_keyframes(kf, ["00000"], (16, 12), {})

@@ -197,3 +197,31 @@ def test_list_warns_about_stale_labels(ds, capsys):
     assert run(ds, "--list") == 0
     err = capsys.readouterr().err
     assert "object 'oven' is not in mapping.yaml" in err and "frame 99 is not among the dataset's frames" in err
+
+
+@pytest.mark.parametrize("sep", [";", "\t"])
+def test_spreadsheets_from_decimal_comma_locales_import(ds, tmp_path, sep):
+    """What Excel writes where the decimal mark is a comma: `;` (or tab) separated, `0,5` for a half. It was told
+    its header lacked frame,object,value and that 0,5 is not a number."""
+    f = tmp_path / "states.csv"
+    f.write_text(sep.join(["frame", "object", "value"]) + "\n" + sep.join(["0", "fridge door", "0,5"]) + "\n"
+                 + sep.join(["5", "fridge door", "1"]) + "\n", encoding="utf-8-sig")
+    assert L.import_labels(ds, f)["imported"] == 2
+    assert read_labels(ds) == {"frame_00000": {"fridge door": 0.5}, "frame_00005": {"fridge door": 1.0}}
+
+
+def test_a_frame_and_object_labelled_twice_is_refused_by_name(ds, tmp_path):
+    """Two rows for one (frame, object) with different values imported as "2 labels", keeping the last, silently;
+    a duplicate YAML key the same. Now both name the rows; the same value twice is one label."""
+    f = tmp_path / "states.csv"
+    f.write_text("frame,object,value\n0,fridge door,0.2\n5,fridge door,1\nframe_00000,fridge door,0.8\n")
+    with pytest.raises(InputError, match=r"'fridge door' on frame_00000 is labelled twice, 0.2 at states.csv:2 and "
+                                         r"0.8 here"):
+        L.import_labels(ds, f)
+    assert read_labels(ds) == {}  # nothing written
+    f.write_text("frame,object,value\n0,fridge door,0.2\n0,fridge door,0.2\n")
+    assert L.import_labels(ds, f)["imported"] == 1
+    y = tmp_path / "states.yaml"
+    y.write_text("frame_00005:\n  fridge door: 0.0\nframe_00005:\n  fridge door: 1.0\n")
+    with pytest.raises(InputError, match="'frame_00005' is given twice"):
+        L.import_labels(ds, y)

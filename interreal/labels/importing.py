@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 import difflib
+import io
+import re
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,7 +15,7 @@ import yaml
 
 from .. import provenance
 from ..conventions import LABELS_FILE
-from ..dataset import read_labels_raw, read_yaml, write_labels
+from ..dataset import read_labels_raw, write_labels
 from ..errors import DatasetError, InputError
 from ..report import StageReport, read_report
 from .edit import merge_labels, refuse_new_objects_with_masks
@@ -36,26 +38,60 @@ def read_label_file(file: str | Path) -> list[dict[str, Any]]:
     raise InputError(f"{path}: unknown label file type {path.suffix!r}; use .csv or .yaml")
 
 
+_DECIMAL_COMMA = re.compile(r"^[-+]?\d*,\d+$")
+
+
+def _delimiter(header: str) -> str:
+    """The CSV's delimiter from its header line: `,`, or `;` / tab, what spreadsheets write where the decimal
+    mark is a comma (the one that splits the header into the most columns)."""
+    return max((",", ";", "\t"), key=lambda d: (header.count(d), d == ","))
+
+
 def _read_csv(path: Path) -> list[dict[str, Any]]:
     with open(path, newline="", encoding="utf-8-sig") as fh:
-        reader = csv.DictReader(fh)
-        fields = [f.strip().lower() for f in (reader.fieldnames or [])]
-        missing = [c for c in ("frame", "object", "value") if c not in fields]
-        if missing:
-            raise InputError(f"{path}: CSV header must name the columns frame,object,value[,unit]; missing {missing}")
-        rows = []
-        for line, raw in enumerate(reader, start=2):
-            rec = {str(k).strip().lower(): (v or "").strip() for k, v in raw.items() if k is not None}
-            if not any(rec.values()):
-                continue
-            rows.append({"frame": rec["frame"], "object": rec["object"], "value": rec["value"],
-                         "unit": rec.get("unit") if "unit" in fields else None, "where": f"{path.name}:{line}"})
+        text = fh.read()
+    delimiter = _delimiter(text.splitlines()[0] if text.strip() else "")
+    reader = csv.DictReader(io.StringIO(text), delimiter=delimiter)
+    fields = [f.strip().lower() for f in (reader.fieldnames or [])]
+    missing = [c for c in ("frame", "object", "value") if c not in fields]
+    if missing:
+        raise InputError(f"{path}: CSV header must name the columns frame,object,value[,unit] (separated by commas, "
+                         f"semicolons or tabs); missing {missing} in {fields}")
+    rows = []
+    for line, raw in enumerate(reader, start=2):
+        rec = {str(k).strip().lower(): (v or "").strip() for k, v in raw.items() if k is not None}
+        if not any(rec.values()):
+            continue
+        value = rec["value"]
+        if delimiter != "," and _DECIMAL_COMMA.match(value):  # "0,5" from a spreadsheet with a decimal comma
+            value = value.replace(",", ".")
+        rows.append({"frame": rec["frame"], "object": rec["object"], "value": value,
+                     "unit": rec.get("unit") if "unit" in fields else None, "where": f"{path.name}:{line}"})
     return rows
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A YAML loader that refuses a key given twice in one mapping (the plain loader keeps the last, silently)."""
+
+
+def _mapping_without_repeats(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
+    seen: dict[Any, int] = {}
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        if key in seen:
+            raise InputError(f"{loader.name}: {key!r} is given twice (lines {seen[key] + 1} and "
+                             f"{key_node.start_mark.line + 1}): keep one")
+        seen[key] = key_node.start_mark.line
+    return loader.construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping_without_repeats)
 
 
 def _read_yaml_labels(path: Path) -> list[dict[str, Any]]:
     try:
-        raw = read_yaml(path)
+        with open(path, encoding="utf-8") as fh:
+            raw = yaml.load(fh, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as exc:
         raise InputError(f"{path}: not valid YAML ({exc})") from None
     if raw is None:
@@ -97,6 +133,7 @@ def parse_import(ds: str | Path, file: str | Path, *, degrees: Any = None, cm: A
     frames = dataset_frames(ds)
     problems: list[str] = []
     out = ParsedImport([], [], units)
+    given: dict[tuple[str, str], tuple[float, str]] = {}
     for r in rows:
         try:
             name = check_object_name(r["object"])
@@ -109,6 +146,13 @@ def parse_import(ds: str | Path, file: str | Path, *, degrees: Any = None, cm: A
             else:
                 problems.append(str(exc))
             continue
+        if (key, name) in given:
+            first, where = given[(key, name)]
+            if abs(first - value) > 1e-9:
+                problems.append(f"{r['where']}: {name!r} on {key} is labelled twice, {first:g} at {where} and "
+                                f"{value:g} here: keep one")
+            continue
+        given[(key, name)] = (value, r["where"])
         out.rows.append((key, name, value))
     if problems:
         more = f"\n  ... and {len(problems) - 10} more" if len(problems) > 10 else ""

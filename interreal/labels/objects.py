@@ -15,14 +15,14 @@ except ImportError:  # pragma: no cover - Windows: the thread lock is all we hav
     fcntl = None  # type: ignore[assignment]
 
 from .. import atomic, provenance
-from ..conventions import ARTICULATION_FILE, IMAGES_DIR, MAPPING_FILE, frame_index
+from ..conventions import (ARTICULATION_FILE, FORBIDDEN_NAME_CHARS, IMAGES_DIR, MAPPING_FILE, frame_index,  # noqa: F401
+                           object_name_problem)
 from ..dataset import (list_images, load_transforms, read_labels_raw, read_mapping, read_prompts, write_labels,
                        write_mapping, write_prompts)
 from ..errors import DatasetError, InputError
 from ..layout import KEYFRAMES_DIR, LOCK_FILE
 from ..provenance import MOTION_INPUTS
 
-FORBIDDEN_NAME_CHARS = ("=", "\n", "\r", "\t")
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -104,15 +104,10 @@ def read_objects(ds: str | Path) -> dict[int, str]:
 
 
 def check_object_name(name: Any) -> str:
-    text = str(name).strip() if name is not None else ""
-    if not text:
-        raise InputError("an object needs a non-empty name")
-    bad = [c for c in FORBIDDEN_NAME_CHARS if c in text]
-    if bad:
-        raise InputError(f"object name {text!r} contains {bad!r}; '=' separates name and value in --state NAME=VALUE")
-    if len(text) > 100:
-        raise InputError(f"object name {text[:20]!r}... is longer than 100 characters")
-    return text
+    problem = object_name_problem(name)
+    if problem:
+        raise InputError(problem)
+    return str(name).strip()
 
 
 def require_object(mapping: dict[int, str], name: str, where: str = "object") -> str:

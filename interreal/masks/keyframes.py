@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import yaml
 
-from ..conventions import MAPPING_FILE, UNANNOTATED, frame_id
+from ..conventions import MAPPING_FILE, UNANNOTATED, frame_id, object_name_problem
 from ..dataset import decode_image
 from ..errors import InputError
 from ..transients import IGNORE, whole_frame
@@ -90,6 +90,11 @@ def load_keyframes(folder: str | Path, frame_ids: list[str], size: tuple[int, in
                              "write {0: 'first object', 1: 'second object'} there")
         mapping = dict(enumerate(labelme.object_labels([p for _, p in sorted(by_fid.items())])))
     names = [mapping[i] for i in sorted(mapping)]
+    for name in names:  # a name every later command would refuse is refused here, where it comes in
+        if problem := object_name_problem(name):
+            where = ("the dataset's " + MAPPING_FILE if ds_mapping else folder / MAPPING_FILE if dir_map
+                     else f"a LabelMe label in {folder}")
+            raise InputError(f"{where}: {problem}: rename it there (e.g. 'door left') and run again")
     if len(names) >= IGNORE:
         raise InputError(f"{len(names)} objects: at most {IGNORE - 1} fit in a keyframe index map (254 = ignore, "
                          f"255 = not annotated); split the capture's objects over two datasets")

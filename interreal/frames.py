@@ -29,7 +29,7 @@ from .errors import InputError
 from .ingest import Source, open_source
 from .options import add_flags, config_from, option, values_from_args
 from .provenance import source_key
-from .report import StageReport, finished_with, fingerprint, tree_fingerprint
+from .report import StageReport, finished_with, fingerprint, tree_fingerprint, warning_lines
 
 DEFAULT_VIDEO_TARGET = 300  # ns-process-data's default, so datasets are comparable
 
@@ -42,11 +42,35 @@ class FrameStats:
     corners: np.ndarray  # FAST corner count
     brightness: np.ndarray  # mean grey level
     motion: np.ndarray  # median flow from the previous frame, fraction of the image width (0 for the first)
+    contrast: np.ndarray | None = None  # grey-level standard deviation (None: not measured)
+
+    def reasons(self) -> np.ndarray:
+        """(N,) why each frame is unusable ("" when it is usable), judged against the video's own frames: a plain
+        dishwasher on a wood floor has few corners and soft edges in every frame, and none of them is blank.
+        black: mean under BLACK levels; blank: grey levels within BLANK_STD (or not one corner); blurred: sharpness
+        under BLUR_SHARE of the video's median; textureless: corners under TEXTURE_SHARE of the video's median and
+        under FEW_CORNERS."""
+        n = len(self.brightness)
+        out = np.full(n, "", dtype=object)
+        blank = self.corners == 0 if self.contrast is None else (self.contrast <= BLANK_STD) | (self.corners == 0)
+        blurred = self.sharpness < BLUR_SHARE * float(np.median(self.sharpness))
+        poor = (self.corners < TEXTURE_SHARE * float(np.median(self.corners))) & (self.corners < FEW_CORNERS)
+        for reason, hit in (("textureless", poor), ("blurred", blurred), ("blank", blank),
+                            ("black", self.brightness <= BLACK)):
+            out[hit] = reason  # the last, most basic reason wins
+        return out
 
     @property
     def usable(self) -> np.ndarray:
-        """Not black, not blank, with texture a feature detector can use."""
-        return (self.brightness > 8) & (self.corners >= 25) & (self.sharpness > 2.0)
+        """Not black, not blank, not blurred or textureless beyond the video's own frames."""
+        return self.reasons() == ""
+
+
+BLACK = 8.0  # mean grey level at or under which a frame is black
+BLANK_STD = 2.0  # grey-level spread at or under which a frame is blank (a lens cap, a white wall out of focus)
+BLUR_SHARE = 0.1  # a frame this much blurrier than the video's median is blurred beyond use
+TEXTURE_SHARE = 0.1  # ... or with this share of its median corners (and fewer than FEW_CORNERS) textureless
+FEW_CORNERS = 25
 
 
 @dataclass
@@ -79,7 +103,7 @@ def analyse(source: Source, progress: bool = True) -> tuple[list[int], FrameStat
     """One pass over the source at <= 640 px: sharpness, texture, brightness and motion per frame."""
     fast = cv2.FastFeatureDetector_create(threshold=20)
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST)
-    idx, sharp, corners, bright, motion = [], [], [], [], []
+    idx, sharp, corners, bright, motion, contrast = [], [], [], [], [], []
     prev = None
     for i, rgb in source.frames(long_side=ANALYSIS_SIDE, progress="analyse" if progress else None):
         grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
@@ -87,6 +111,7 @@ def analyse(source: Source, progress: bool = True) -> tuple[list[int], FrameStat
         sharp.append(float(cv2.Laplacian(grey, cv2.CV_32F).var()))
         corners.append(len(fast.detect(grey)))
         bright.append(float(grey.mean()))
+        contrast.append(float(grey.std()))
         th = max(8, round(grey.shape[0] * THUMB_W / grey.shape[1]))
         thumb = cv2.resize(grey, (THUMB_W, th), interpolation=cv2.INTER_AREA)
         if prev is None:
@@ -95,7 +120,7 @@ def analyse(source: Source, progress: bool = True) -> tuple[list[int], FrameStat
             flow = dis.calc(prev, thumb, None)
             motion.append(float(np.median(np.linalg.norm(flow, axis=2))) / THUMB_W)
         prev = thumb
-    stats = FrameStats(*(np.asarray(a, dtype=np.float64) for a in (sharp, corners, bright, motion)))
+    stats = FrameStats(*(np.asarray(a, dtype=np.float64) for a in (sharp, corners, bright, motion, contrast)))
     return idx, stats
 
 
@@ -256,9 +281,8 @@ def extract_frames(source: str | Path, ds: str | Path, *, report: bool = True, *
             })
             if src.info.names:
                 rep.figures["source_names"] = {frame_name(i): src.info.names[i] for i in chosen}
-            if info["unusable"]:
-                rep.warn(f"{len(info['unusable'])} frames are black, blank or textureless and were skipped "
-                         f"(e.g. {_ranges(info['unusable'])})", cause="texture/exposure")
+            for message in skipped_lines(indices, stats, keep):
+                rep.warn(message, cause="texture/exposure")
             rep.data["wall_s_total"] = round(time.perf_counter() - t0, 3)
     return written
 
@@ -273,12 +297,30 @@ def _swap_dir(new: Path, dest: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
+def skipped_lines(indices: Sequence[int], stats: FrameStats, keep: Iterable[int] = ()) -> list[str]:
+    """One line per reason frames were skipped, naming them; a run at the start or the end of the video is called
+    out (what the user filmed there is lost). Frames kept for annotations are not skipped."""
+    reasons, kept = stats.reasons(), set(int(k) for k in keep)
+    indices = [int(i) for i in indices]
+    lines = []
+    for reason in ("black", "blank", "blurred", "textureless"):
+        ids = [i for i, r in zip(indices, reasons) if r == reason and i not in kept]
+        if not ids:
+            continue
+        ends = [w for w, hit in (("start", ids[0] == indices[0]), ("end", ids[-1] == indices[-1])) if hit]
+        lines.append(f"{len(ids)} {reason} frame(s) skipped: {_ranges(ids)}"
+                     + (f" (at the {' and the '.join(ends)} of the video)" if ends else "")
+                     + {"black": "", "blank": "", "blurred": " (far blurrier than the video's other frames)",
+                        "textureless": " (far fewer corners than the video's other frames)"}[reason])
+    return lines
+
+
 def _unusable_reason(stats: FrameStats) -> str:
-    if np.all(stats.brightness <= 8):
-        return "the frames are black"
-    if np.median(stats.corners) < 25:
-        return "the frames are blank or textureless"
-    return "the frames are black, blank or blurred"
+    reasons = [r for r in stats.reasons() if r]
+    if not reasons:
+        return "the frames are usable"
+    counts = {r: reasons.count(r) for r in dict.fromkeys(reasons)}
+    return "the frames are " + ", ".join(f"{r} ({n})" for r, n in counts.items())
 
 
 def _ranges(ids: Sequence[int], limit: int = 6) -> str:
@@ -327,5 +369,7 @@ def frames_options(args) -> dict[str, Any]:
 
 def main(args) -> int:
     paths = extract_frames(args.input, args.dataset, **frames_options(args))
+    for line in warning_lines(args.dataset, ["frames"]):  # the frames skipped, and why: printed, not only reported
+        print(line)
     print(f"{len(paths)} frames -> {args.dataset / IMAGES_DIR} (report: {args.dataset}/reports/frames.json)")
     return 0

@@ -10,7 +10,7 @@ import pytest
 
 from interreal import cli
 from interreal.errors import InputError
-from interreal.frames import FrameStats, SelectConfig, analyse, extract_frames, select
+from interreal.frames import FrameStats, SelectConfig, analyse, extract_frames, select, skipped_lines
 from interreal.ingest import open_source
 
 from test_ingest import textured, write_video
@@ -134,3 +134,28 @@ def test_frames_flags_come_from_the_config_fields():
         p.parse_args(["in.mp4", "ds", "--every", "3", "--target", "20"])
     with pytest.raises(InputError, match="unknown frames options"):
         extract_frames("in.mp4", "ds", long_sides=640)
+
+
+def test_plain_videos_keep_their_frames_and_skips_say_why():
+    """A plain dishwasher on a wood floor: every frame has few corners (12-18) and soft edges, none is blank; 21
+    such frames were skipped as "black, blank or textureless" (the only ones at state 0). Judged against the video's
+    own frames, they are kept; a black, a blank, a far blurrier and a far plainer frame are skipped, each named with
+    its reason, a run at the start called out."""
+    n = 40
+    rng = np.random.default_rng(0)
+    plain = FrameStats(sharpness=rng.uniform(6, 9, n), corners=rng.integers(12, 19, n).astype(float),
+                       brightness=np.full(n, 110.0), motion=np.full(n, 0.01), contrast=np.full(n, 25.0))
+    assert plain.usable.all()
+    plain.brightness[[0, 1]] = 3.0  # a lens cap at the start
+    plain.contrast[10] = 0.5  # blank
+    plain.sharpness[20] = 0.3  # far blurrier than the rest
+    plain.corners[30] = 0.0  # not one corner: blank too
+    plain.corners[31] = 1.0  # far plainer than the rest
+    reasons = plain.reasons()
+    assert [i for i in range(n) if reasons[i]] == [0, 1, 10, 20, 30, 31]
+    assert (reasons[0], reasons[10], reasons[20], reasons[30], reasons[31]) == (
+        "black", "blank", "blurred", "blank", "textureless")
+    lines = skipped_lines(list(range(n)), plain, keep=[31])
+    assert lines[0] == "2 black frame(s) skipped: 0-1 (at the start of the video)"
+    assert lines[1] == "2 blank frame(s) skipped: 10, 30" and lines[2].startswith("1 blurred frame(s) skipped: 20")
+    assert len(lines) == 3  # frame 31 is kept for an annotation: not reported as skipped

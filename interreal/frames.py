@@ -45,32 +45,28 @@ class FrameStats:
     contrast: np.ndarray | None = None  # grey-level standard deviation (None: not measured)
 
     def reasons(self) -> np.ndarray:
-        """(N,) why each frame is unusable ("" when it is usable), judged against the video's own frames: a plain
-        dishwasher on a wood floor has few corners and soft edges in every frame, and none of them is blank.
-        black: mean under BLACK levels; blank: grey levels within BLANK_STD (or not one corner); blurred: sharpness
-        under BLUR_SHARE of the video's median; textureless: corners under TEXTURE_SHARE of the video's median and
-        under FEW_CORNERS."""
+        """(N,) why each frame is unusable ("" when it is usable): black (mean under BLACK levels), blank (grey
+        levels within BLANK_STD: a lens cap, a white wall out of focus), or blurred beyond use (sharpness under
+        BLUR_SHARE of the video's own median). Few corners is no reason: a plain dishwasher on a wood floor, or a
+        plain door filling the view, has few in every frame, and those frames show the part (SfM may still leave
+        them without a camera; `poses` names them)."""
         n = len(self.brightness)
         out = np.full(n, "", dtype=object)
-        blank = self.corners == 0 if self.contrast is None else (self.contrast <= BLANK_STD) | (self.corners == 0)
+        blank = self.corners == 0 if self.contrast is None else self.contrast <= BLANK_STD
         blurred = self.sharpness < BLUR_SHARE * float(np.median(self.sharpness))
-        poor = (self.corners < TEXTURE_SHARE * float(np.median(self.corners))) & (self.corners < FEW_CORNERS)
-        for reason, hit in (("textureless", poor), ("blurred", blurred), ("blank", blank),
-                            ("black", self.brightness <= BLACK)):
+        for reason, hit in (("blurred", blurred), ("blank", blank), ("black", self.brightness <= BLACK)):
             out[hit] = reason  # the last, most basic reason wins
         return out
 
     @property
     def usable(self) -> np.ndarray:
-        """Not black, not blank, not blurred or textureless beyond the video's own frames."""
+        """Not black, not blank, not blurred beyond the video's own frames."""
         return self.reasons() == ""
 
 
 BLACK = 8.0  # mean grey level at or under which a frame is black
 BLANK_STD = 2.0  # grey-level spread at or under which a frame is blank (a lens cap, a white wall out of focus)
 BLUR_SHARE = 0.1  # a frame this much blurrier than the video's median is blurred beyond use
-TEXTURE_SHARE = 0.1  # ... or with this share of its median corners (and fewer than FEW_CORNERS) textureless
-FEW_CORNERS = 25
 
 
 @dataclass
@@ -303,15 +299,15 @@ def skipped_lines(indices: Sequence[int], stats: FrameStats, keep: Iterable[int]
     reasons, kept = stats.reasons(), set(int(k) for k in keep)
     indices = [int(i) for i in indices]
     lines = []
-    for reason in ("black", "blank", "blurred", "textureless"):
+    for reason in ("black", "blank", "blurred"):
         ids = [i for i, r in zip(indices, reasons) if r == reason and i not in kept]
         if not ids:
             continue
         ends = [w for w, hit in (("start", ids[0] == indices[0]), ("end", ids[-1] == indices[-1])) if hit]
         lines.append(f"{len(ids)} {reason} frame(s) skipped: {_ranges(ids)}"
                      + (f" (at the {' and the '.join(ends)} of the video)" if ends else "")
-                     + {"black": "", "blank": "", "blurred": " (far blurrier than the video's other frames)",
-                        "textureless": " (far fewer corners than the video's other frames)"}[reason])
+                     + {"black": "", "blank": " (no texture at all)",
+                        "blurred": " (far blurrier than the video's other frames)"}[reason])
     return lines
 
 

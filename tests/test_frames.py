@@ -138,9 +138,9 @@ def test_frames_flags_come_from_the_config_fields():
 
 def test_plain_videos_keep_their_frames_and_skips_say_why():
     """A plain dishwasher on a wood floor: every frame has few corners (12-18) and soft edges, none is blank; 21
-    such frames were skipped as "black, blank or textureless" (the only ones at state 0). Judged against the video's
-    own frames, they are kept; a black, a blank, a far blurrier and a far plainer frame are skipped, each named with
-    its reason, a run at the start called out."""
+    such frames were skipped as "black, blank or textureless" (the only ones at state 0). Now few corners is no
+    reason (a plain door filling the view has 2, and shows the part); a black, a blank and a far blurrier frame are
+    skipped, each named with its reason, a run at the start called out."""
     n = 40
     rng = np.random.default_rng(0)
     plain = FrameStats(sharpness=rng.uniform(6, 9, n), corners=rng.integers(12, 19, n).astype(float),
@@ -149,13 +149,12 @@ def test_plain_videos_keep_their_frames_and_skips_say_why():
     plain.brightness[[0, 1]] = 3.0  # a lens cap at the start
     plain.contrast[10] = 0.5  # blank
     plain.sharpness[20] = 0.3  # far blurrier than the rest
-    plain.corners[30] = 0.0  # not one corner: blank too
-    plain.corners[31] = 1.0  # far plainer than the rest
+    plain.corners[30:33] = [0.0, 1.0, 2.0]  # the plain door filling the view: kept
+    plain.contrast[35] = 1.0  # blank, but kept for an annotation
     reasons = plain.reasons()
-    assert [i for i in range(n) if reasons[i]] == [0, 1, 10, 20, 30, 31]
-    assert (reasons[0], reasons[10], reasons[20], reasons[30], reasons[31]) == (
-        "black", "blank", "blurred", "blank", "textureless")
-    lines = skipped_lines(list(range(n)), plain, keep=[31])
-    assert lines[0] == "2 black frame(s) skipped: 0-1 (at the start of the video)"
-    assert lines[1] == "2 blank frame(s) skipped: 10, 30" and lines[2].startswith("1 blurred frame(s) skipped: 20")
-    assert len(lines) == 3  # frame 31 is kept for an annotation: not reported as skipped
+    assert [i for i in range(n) if reasons[i]] == [0, 1, 10, 20, 35]
+    assert (reasons[0], reasons[10], reasons[20]) == ("black", "blank", "blurred")
+    lines = skipped_lines(list(range(n)), plain, keep=[35])
+    assert lines == ["2 black frame(s) skipped: 0-1 (at the start of the video)",
+                     "1 blank frame(s) skipped: 10 (no texture at all)",
+                     "1 blurred frame(s) skipped: 20 (far blurrier than the video's other frames)"]

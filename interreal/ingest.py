@@ -3,7 +3,8 @@
 - Videos are decoded with PyAV; the display matrix phones write (portrait = stored landscape + rotation) is honoured,
   so frames come out the way the phone showed them (checked against ffmpeg's autorotate).
 - Image folders are decoded by content, not extension (real captures have JPEG bytes in `.png` files);
-  EXIF orientation is applied. The frame index is the file's position in name order.
+  EXIF orientation is applied. HEIC / HEIF photos (an iPhone's default) are read with pillow-heif, their own
+  rotation applied. The frame index is the file's position in name order.
 - RAW folders (DNG, CR2, NEF, ...) go through rawpy with ONE white balance and ONE exposure gain for the whole
   sequence (median of the per-file as-shot balance; a gain from the pooled brightness), so colours do not flicker.
 
@@ -20,8 +21,15 @@ import av
 import cv2
 import numpy as np
 import rawpy
-from PIL import Image
+from PIL import Image, ImageOps
 from tqdm import tqdm
+
+try:  # HEIC / HEIF photos, the iPhone's default: a dependency, but an install without it still reads the rest
+    import pillow_heif
+except ImportError:  # pragma: no cover - named in the error a HEIC file then gets
+    pillow_heif = None
+else:
+    pillow_heif.register_heif_opener()
 
 from .dataset import decode_image as decode_file
 from .errors import InputError
@@ -43,7 +51,8 @@ _MAGIC: tuple[tuple[int, bytes, str], ...] = (
     (0, b"\x1a\x45\xdf\xa3", "matroska"),
     (8, b"AVI ", "avi"),
 )
-IMAGE_FORMATS = {"jpeg", "png", "tiff", "bmp", "webp"}
+IMAGE_FORMATS = {"jpeg", "png", "tiff", "bmp", "webp", "heif"}
+HEIF_BRANDS = {b"heic", b"heix", b"hevc", b"hevx", b"heim", b"heis", b"hevm", b"hevs", b"mif1", b"msf1"}
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".heic", ".heif", ".gif"}
 
 
@@ -56,7 +65,7 @@ def sniff(path: str | Path) -> str | None:
         return None
     for offset, magic, fmt in _MAGIC:
         if head[offset:offset + len(magic)] == magic:
-            return fmt
+            return "heif" if fmt == "isobmff" and head[8:12] in HEIF_BRANDS else fmt
     return None
 
 
@@ -194,10 +203,25 @@ def _frame_rotation(frame, metadata) -> int:
 # ----------------------------------------------------------------------------------------------------------------
 def decode_image(path: Path) -> np.ndarray:
     """RGB uint8, EXIF orientation applied; the format is detected from the bytes, whatever the extension says."""
+    if sniff(path) == "heif":
+        return _decode_heif(path)
     img = decode_file(path, cv2.IMREAD_COLOR)  # IMREAD_COLOR applies the EXIF orientation
     if img is None:
         raise InputError(f"{path} cannot be decoded: the file is truncated or not an image; remove or replace it")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def _decode_heif(path: Path) -> np.ndarray:
+    """A HEIC / HEIF photo as RGB uint8, upright (pillow-heif applies the file's rotation, EXIF the rest)."""
+    if pillow_heif is None:
+        raise InputError(f"{path} is a HEIC photo (an iPhone's default) and pillow-heif is not installed: "
+                         f"`pip install pillow-heif`, or export the photos as JPEG")
+    try:
+        with Image.open(path) as im:
+            return np.asarray(ImageOps.exif_transpose(im).convert("RGB"))
+    except Exception as exc:  # noqa: BLE001 - any decoder failure is this file's problem, named
+        raise InputError(f"{path} cannot be decoded as HEIC ({exc}): the file is truncated or damaged; remove or "
+                         f"replace it") from None
 
 
 def _upright_size(path: Path) -> tuple[int, int] | None:
@@ -369,7 +393,7 @@ def open_source(path: str | Path) -> Source:
         if bad:
             more = f" and {len(bad) - 5} more" if len(bad) > 5 else ""
             raise InputError(f"{path} holds files that are not images: {', '.join(bad[:5])}{more}; remove them "
-                             "(supported: JPEG, PNG, TIFF, BMP, WebP by content; RAW by extension)")
+                             "(supported: JPEG, PNG, TIFF, BMP, WebP, HEIC by content; RAW by extension)")
         source = ImageFolderSource(path, files)
     if stray or hidden:
         source.info.extra["skipped"] = [p.name for p in stray + hidden]

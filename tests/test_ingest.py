@@ -233,3 +233,27 @@ def test_single_non_video_file_is_refused(tmp_path):
         open_source(p)
     with pytest.raises(InputError, match="does not exist"):
         open_source(tmp_path / "missing.mp4")
+
+
+def test_heic_photos_are_read_upright(tmp_path):
+    """An iPhone's default: HEIC photos were called "not images: remove them". Read with pillow-heif, a portrait
+    shot (EXIF orientation 6) comes out upright at its displayed size; a damaged one is named."""
+    from PIL import Image
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for i in range(4):
+        img = textured(i)  # 96 x 128, stored landscape
+        exif = Image.Exif()
+        exif[274] = 6  # shot in portrait: displayed rotated a quarter turn
+        Image.fromarray(img).save(folder / f"IMG_{i:04d}.HEIC", format="HEIF", exif=exif.tobytes(), quality=95)
+    ds = tmp_path / "ds"
+    paths = extract_frames(folder, ds)
+    assert len(paths) == 4
+    out = cv2.imread(str(paths[0]))
+    assert out.shape[:2] == (128, 96)  # upright: portrait
+    info = json.loads((ds / "reports" / "frames.json").read_text())["inputs"]["source_info"]
+    assert info["extra"]["formats"] == ["heif"]
+    (folder / "IMG_0001.HEIC").write_bytes((folder / "IMG_0001.HEIC").read_bytes()[:200])
+    with pytest.raises(InputError, match="IMG_0001.HEIC"):
+        extract_frames(folder, tmp_path / "ds2")

@@ -129,8 +129,9 @@ def select(indices: Sequence[int], stats: FrameStats, cfg: SelectConfig,
     keep = sorted(set(int(k) for k in keep))
     missing = [k for k in keep if k not in set(indices.tolist())]
     if missing:
-        raise InputError(f"frames {missing[:10]} are named by --keyframes/--labels but the source has only "
-                         f"{n} frames (0-{n - 1}); check that the annotations belong to this capture")
+        raise InputError(f"frames {missing[:10]} are asked to be kept (by --keep, or named by --keyframes / "
+                         f"--labels) but the source has only {n} frames (0-{n - 1}); check the frame numbers, and "
+                         f"that the annotations belong to this capture")
     info: dict = {"unusable": indices[~usable].tolist(), "near_duplicates": []}
     if cfg.keep_all and not cfg.target and not cfg.every:
         chosen = set(indices[usable].tolist())

@@ -649,3 +649,17 @@ def test_a_labelme_name_the_label_commands_refuse_is_refused_where_it_comes_in(t
                                                       "points": [[1, 1], [9, 1], [9, 9]]}]})
     with pytest.raises(InputError, match=r"a LabelMe label in .*'door=left' contains \['='\].*rename it there"):
         load_keyframes(kf, ["00000"], (16, 12), {})
+
+
+def test_polygon_problems_say_which(tmp_path):
+    """A polygon wholly outside the frame was "fewer than 3 points or no area"; each case now says which."""
+    from interreal.errors import InputError
+    from interreal.masks.keyframes import load_keyframes
+
+    kf = tmp_path / "kf"
+    for points, message in (([[200, 200], [260, 200], [260, 260]], r"wholly outside the 16x12 frame .*another image"),
+                            ([[1, 1], [9, 9]], r"has 2 point\(s\)"),
+                            ([[1, 1], [5, 5], [9, 9]], r"no area")):
+        atomic.write_json(kf / "00000.json", {"shapes": [{"label": "door", "shape_type": "polygon", "points": points}]})
+        with pytest.raises(InputError, match=message):
+            load_keyframes(kf, ["00000"], (16, 12), {0: "door"})

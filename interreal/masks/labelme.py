@@ -135,8 +135,18 @@ def _shape(path: Path, i: int, shape, scale: tuple[float, float], size: tuple[in
     if kind == "polygon":
         m = np.zeros((h, w), np.uint8)
         cv2.fillPoly(m, [np.round(pts).astype(np.int32)], 1)
-        if not m.any() or len(pts) < 3:
-            raise InputError(f"{path}: polygon {i} ('{label}') is empty (fewer than 3 points or no area)")
+        if len(pts) < 3:
+            raise InputError(f"{path}: polygon {i} ('{label}') has {len(pts)} point(s); a polygon needs 3 or more")
+        x, y = pts[:, 0], pts[:, 1]
+        if abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))) / 2 < 0.5:  # shoelace area, px^2
+            raise InputError(f"{path}: polygon {i} ('{label}') has no area (its points lie on a line)")
+        if not m.any():
+            lo, hi = pts.min(0), pts.max(0)
+            if hi[0] < 0 or hi[1] < 0 or lo[0] >= w or lo[1] >= h:
+                raise InputError(f"{path}: polygon {i} ('{label}') lies wholly outside the {w}x{h} frame (x "
+                                 f"{lo[0]:.0f}..{hi[0]:.0f}, y {lo[1]:.0f}..{hi[1]:.0f}): was it drawn on another "
+                                 f"image? Annotate DS/images/")
+            raise InputError(f"{path}: polygon {i} ('{label}') has no area (its points lie on a line)")
         return "polygon", k, m > 0
     if kind == "rectangle":
         if len(pts) != 2:

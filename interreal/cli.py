@@ -18,6 +18,7 @@ from typing import Callable, Sequence
 from . import __version__
 from .allocator import keep_freed_blocks
 from .errors import InterRealError
+from .report import Terminated
 
 PROG = "interreal"
 # name -> (module, one-line help)
@@ -60,7 +61,7 @@ def run_cli(prog: str, commands: dict[str, tuple[str, str]], epilog: str, argv: 
 def _interrupted(prog: str, exc: KeyboardInterrupt) -> int:
     """One line for Ctrl-C or SIGTERM (what the command saved is in its message); 130 / 143 as a shell reports."""
     print(f"{prog}: {str(exc) or 'interrupted'}", file=sys.stderr)
-    return 143 if type(exc).__name__ == "Terminated" else 130
+    return 143 if isinstance(exc, Terminated) else 130
 
 
 def _run_cli(prog: str, commands: dict[str, tuple[str, str]], epilog: str, argv: Sequence[str] | None,

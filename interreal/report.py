@@ -145,7 +145,7 @@ class StageReport:
         self.data["wall_s"] = round(time.perf_counter() - self._t0, 3)
         if exc is None:
             self.data["status"] = "ok"
-        elif issubclass(exc_type, KeyboardInterrupt):  # Ctrl-C, or SIGTERM turned into one (`interrupt_on_sigterm`)
+        elif issubclass(exc_type, KeyboardInterrupt):  # Ctrl-C, or SIGTERM turned into one (`Terminated`)
             self.data["status"] = "interrupted"
             self.data["error"] = str(exc) or "interrupted (Ctrl-C)"
         else:

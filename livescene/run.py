@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import io
-import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +20,7 @@ import numpy as np
 import torch
 
 from interreal import atomic
+from interreal.report import read_report
 
 from .config import TrainConfig, from_dict
 from .data import Views, load_views
@@ -143,11 +143,10 @@ def checkpoint_config(ckpt: dict) -> TrainConfig:
 def unfinished_note(run_dir: str | Path, step: int | None = None) -> str | None:
     """One line when the run's training did not finish (interrupted, failed, or killed while "running"): the
     commands that read it say they use its last checkpoint; None for a finished run (or one without a report)."""
-    try:
-        rep = json.loads((Path(run_dir) / "reports" / "train.json").read_text())
-    except (OSError, ValueError):
-        return None
+    rep = read_report(run_dir, "train") or {}
     status = rep.get("status")
+    if status is None:
+        return None
     if status == "ok":
         return None
     at = f" (its last checkpoint, step {step}, is used)" if step is not None else ""

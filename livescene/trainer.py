@@ -496,16 +496,15 @@ class Trainer:
         acc: dict[str, list[float]] = {}
         bar = tqdm(total=cfg.steps, initial=self.step, desc="train", disable=not self.show_progress,
                    dynamic_ncols=True, unit="step")
-        stop_reason = "steps"
         self.model.train()
         trial = ThreadTrial(os.cpu_count() or 1) if getattr(self, "measure_threads", False) else None
         try:
             last = self._loop(bar, trial, acc, last, t_start, overhead_start)
         except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: keep every step trained so far
-            bar.close()
             raise self._interrupted(exc) from None
+        finally:
+            bar.close()
         stop_reason = last.pop("_stop", "steps")
-        bar.close()
         t0 = self.clock()
         # once, for the final model: saved with its checkpoint, renders skip air
         self.occupancy = build_grid(self.model, self.box, self.step, clock=self.clock)

@@ -10,12 +10,13 @@ Modules: `values` (units and ranges), `objects` (the edit lock, frames, `mapping
 `merge_labels` / list / check), `importing` (`--from FILE`), `cli` (`interreal label`).
 """
 
+from ..conventions import FORBIDDEN_NAME_CHARS
 from ..layout import KEYFRAMES_DIR, LOCK_FILE
 from .cli import add_arguments, add_unit_arguments, main
 from .edit import (check_labels, format_table, list_labels, merge_labels, refuse_new_objects_with_masks, set_label,
                    unset_label)
 from .importing import ParsedImport, import_labels, labels_fingerprints, parse_import, read_label_file
-from .objects import (FORBIDDEN_NAME_CHARS, add_object, check_object_name, dataset_frames, edit_lock, read_objects,
+from .objects import (add_object, check_object_name, dataset_frames, edit_lock, read_objects,
                       rename_object, require_object, resolve_frame)
 from .values import UNIT_ALIASES, Unit, normalise_value, parse_range
 

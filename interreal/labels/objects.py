@@ -15,8 +15,7 @@ except ImportError:  # pragma: no cover - Windows: the thread lock is all we hav
     fcntl = None  # type: ignore[assignment]
 
 from .. import atomic, provenance
-from ..conventions import (ARTICULATION_FILE, FORBIDDEN_NAME_CHARS, IMAGES_DIR, MAPPING_FILE, frame_index,  # noqa: F401
-                           object_name_problem)
+from ..conventions import ARTICULATION_FILE, IMAGES_DIR, MAPPING_FILE, frame_index, object_name_problem
 from ..dataset import (list_images, load_transforms, read_labels_raw, read_mapping, read_prompts, write_labels,
                        write_mapping, write_prompts)
 from ..errors import DatasetError, InputError

@@ -146,7 +146,7 @@ def _shape(path: Path, i: int, shape, scale: tuple[float, float], size: tuple[in
                 raise InputError(f"{path}: polygon {i} ('{label}') lies wholly outside the {w}x{h} frame (x "
                                  f"{lo[0]:.0f}..{hi[0]:.0f}, y {lo[1]:.0f}..{hi[1]:.0f}): was it drawn on another "
                                  f"image? Annotate DS/images/")
-            raise InputError(f"{path}: polygon {i} ('{label}') has no area (its points lie on a line)")
+            raise InputError(f"{path}: polygon {i} ('{label}') covers no pixel (smaller than one): draw it larger")
         return "polygon", k, m > 0
     if kind == "rectangle":
         if len(pts) != 2:

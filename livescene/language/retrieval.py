@@ -246,7 +246,7 @@ def require_match(result: Retrieval) -> Candidate:
                              f"{result.reads_as!r}, {result.reads_as_score:.3f}, clearly closer than any object "
                              f"here); nearest objects:\n"
                              f"{result.table()}\nname one of them, or describe an object with "
-                             f"`interreal label DS --describe NAME TEXT` and train again")
+                             f"`interreal label DS --describe NAME TEXT`")
     if not result.ok:
         raise LiveSceneError(f"no object matches {result.query!r} (best similarity {result.best.score:.3f} < "
                              f"threshold {result.threshold:.3f}); candidates:\n{result.table()}\n"

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from . import atomic
-from .errors import DatasetError, InputError
-from .layout import TRANSIENTS_DIR
+from .. import atomic
+from ..errors import DatasetError, InputError
+from ..layout import TRANSIENTS_DIR
 
 IGNORE = 254  # keyframe index-PNG value of the painted "ignore" class (255 stays "not annotated")
 IGNORE_LABELS = ("ignore", "person", "hand", "arm", "transient")  # LabelMe labels of the "ignore" class

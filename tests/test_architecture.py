@@ -47,12 +47,13 @@ OPTIONAL_EXTRAS = {"fastapi", "starlette", "uvicorn", "playwright", "open_clip",
                    "transformers", "huggingface_hub", "webbrowser"}
 COMMAND_MODULES = ("livescene.cli", "livescene.__main__", "livescene.commands")
 # interreal: optional extras (pyproject extras, or stdlib used by one path) may be imported where used anywhere ...
-INTERREAL_OPTIONAL_EXTRAS = {"fastapi", "starlette", "uvicorn", "ray", "playwright", "webbrowser"}
+INTERREAL_OPTIONAL_EXTRAS = {"fastapi", "starlette", "uvicorn", "ray", "playwright", "webbrowser",
+                             "mediapipe"}  # the hand model (.ci/setup installs it without its numpy < 2 pin)
 # ... and these imports stay inside functions in these modules only (module -> imported module prefixes), each why:
 INTERREAL_LAZY = {
     "interreal.atomic": {"cv2"},  # on the `interreal validate` path (every dataset read); cv2 only to write images
     "interreal.images": {"cv2"},  # on the validate path: header checks need PIL only, decoding needs cv2
-    "interreal.transients": {"cv2"},  # on the validate path (its checks read no pixels)
+    "interreal.transients.layer": {"cv2"},  # on the validate path (its checks read no pixels)
     "interreal.dataset.io": {"trimesh"},  # on the validate path; trimesh (~1.8 s) only to read the point cloud
     "interreal.dataset.types": {"scipy"},  # on the validate path; scipy (~0.5 s) only for quaternion conversion
     "interreal.demo": {"livescene"},  # the command above both packages: torch only once training starts

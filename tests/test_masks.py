@@ -624,7 +624,7 @@ def test_masks_flags_come_from_the_config_fields():
     add_arguments(p)
     flags = {s for a in p._actions for s in a.option_strings} - {"-h", "--help"}
     assert flags == {"--keyframes", "--quiet", "--work-size", "--flow", "--preset", "--appearance", "--rigid", "--cut",
-                     "--no-fusion", "--no-refine", "--suggest", "--preview"}
+                     "--no-fusion", "--no-refine", "--suggest", "--preview", "--transients"}
     opts = masks_options(p.parse_args(["ds", "--keyframes", "kf"]))
     defaults = dataclasses.asdict(MasksConfig())
     assert opts == {k: defaults[k] for k in opts} and len(opts) == len(flags) - 2

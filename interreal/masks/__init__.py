@@ -15,9 +15,9 @@ from pathlib import Path
 from ..report import warning_lines
 from ..options import add_flags, values_from_args
 from .config import MasksConfig
-from .stage import propagate
+from .stage import propagate, transient_line
 
-__all__ = ["MasksConfig", "propagate", "add_arguments", "main", "masks_options"]
+__all__ = ["MasksConfig", "propagate", "transient_line", "add_arguments", "main", "masks_options"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -35,7 +35,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 keyframes: DIR/00042.png (0 = background, k = object k-1, 254 = ignore: a person / hand, 255 = not annotated) or
 DIR/00042.json (LabelMe polygons / rectangles; label ignore, person, hand or arm = the ignore class);
 DIR/mapping.yaml names the objects when the dataset has no mapping.yaml. The ignore class is propagated like an
-object into DS/transients/ (left out of poses, motions and training).
+object into DS/transients/ (left out of poses, motions and training). With --transients auto (the default) the hand
+model finds the hands on every frame and the layer grows them to the arm and sleeve, no painting needed
+(mediapipe 0.10.21, installed by .ci/setup; without it one line says so).
 outputs: DS/masks/<fid>.npy, DS/sfm_masks/<image>.png, DS/transients/<fid>.png, DS/previews/, DS/reports/masks.json"""
 
 
@@ -54,9 +56,9 @@ def main(args: argparse.Namespace) -> int:
     fig = propagate(args.dataset, args.keyframes, progress=not args.quiet, **opts)
     print(f"masks: {fig['frames']} frames, {len(fig['objects'])} objects, {fig['fps']:.1f} frames/s")
     tr = fig.get("transients") or {}
-    if tr.get("frames"):
-        print(f"  transients (ignore class): {tr['frames']} frames, {100 * tr['mean_share']:.1f} % of the pixels "
-              f"on average (at most {100 * tr['max_share']:.0f} %) -> {args.dataset / 'transients'}")
+    line = transient_line(fig)
+    if line:
+        print(f"  {line} -> {args.dataset / 'transients'}")
     for name, frames in (tr.get("occluded") or {}).items():
         print(f"  {name}: hidden behind the person / hand at frames {frames} (occluded, not lost)")
     for name, frames in (fig.get("redetected") or {}).items():

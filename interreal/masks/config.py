@@ -13,6 +13,7 @@ from .track import TrackConfig
 from .workframes import WORK_LONG_SIDE
 
 PREVIEW_KINDS = ("sheet", "video", "both", "none")
+TRANSIENT_MODES = ("auto", "off")
 
 
 @dataclass
@@ -32,6 +33,9 @@ class MasksConfig:
     refine: bool = option(True, "no guided-filter boundary refinement", flag="--no-refine")
     suggest: int = option(5, "print the N frames where one more keyframe would help most", metavar="N")
     preview: str = option("both", "DS/previews/masks_sheet.png and/or masks_overlay.mp4", choices=PREVIEW_KINDS)
+    transients: str = option("auto", "the transient layer (hands, arms) without painting: auto = from the hand model "
+                                     "(mediapipe), grown to the arm; off = only the painted ignore class",
+                             choices=TRANSIENT_MODES)
     sfm_dilate: int | None = None  # px the SfM masks grow by (None = 0.6 % of the image diagonal, at least 2)
 
     def __post_init__(self) -> None:

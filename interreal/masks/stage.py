@@ -31,6 +31,8 @@ from .soft import argmax_labels, disk
 from .track import Propagator, TrackConfig
 from ..transients import (IGNORE, clear_transients, read_transient, split_labels, track_labels, transient_file,
                           write_transient)
+from ..transients.auto import AutoLayer, propose
+from ..transients.hands import model_problem, shares
 
 # Farthest a propagated frame may lie from its nearest keyframe, in image widths of view motion. Measured (mean
 # IoU of the worst object): 0.05-0.09 -> 0.89-0.94 (DAVIS every 10th frame, simulated captures at normal speed);
@@ -66,6 +68,9 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
     ds = Path(ds)
     opt = config_from(MasksConfig, opts, "masks")
     suggest, preview, sfm_dilate = opt.suggest, opt.preview, opt.sfm_dilate
+    # the hand model checked once, first: a run made without it is made again once it is installed
+    no_model = model_problem() if opt.transients == "auto" else None
+    auto = opt.transients == "auto" and no_model is None
     if preview not in PREVIEW_KINDS:
         raise InputError(f"--preview {preview!r}: choose one of {PREVIEW_KINDS}")
     cfg = config or opt.track_config()
@@ -74,7 +79,7 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
     # the mapping file is left out of the key: the first run writes it, which would make every second run look changed
     keys_fp = tree_fingerprint(Path(keyframes_dir))
     key = None if keys_fp is None else fingerprint("masks", str(ds.resolve()), files_fingerprint(images), keys_fp,
-                                                    asdict(cfg), suggest, preview, sfm_dilate)
+                                                    asdict(cfg), suggest, preview, sfm_dilate, auto)
     done = finished_with(ds, "masks", key) if key is not None else None
     if done is not None and all(mask_file(ds, f).exists() for f in fids) \
             and all((ds / SFM_MASKS_DIR / f"{p.name}.png").exists() for p in images) \
@@ -109,19 +114,30 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
     anchors = {pos_of[f]: track_labels(m, n_obj) for f, m in kf.masks.items()}
     inputs = {"keyframes_dir": str(keyframes_dir), "keyframes": kf.sources, "frames": len(fids),
               "size": list(size), "objects": kf.names, "fingerprints": fingerprints}
-    settings = {**asdict(cfg), "suggest": suggest, "preview": preview}
+    settings = {**asdict(cfg), "suggest": suggest, "preview": preview, "transients": opt.transients}
     with StageReport(ds, "masks", inputs=inputs, settings=settings, resume_key=key) as rep:
         rep.steps["keyframes"] = {"wall_s": round(t_kf, 4)}
         if not ds_mapping:
             write_mapping(ds, dict(enumerate(kf.names)))
         dil = sfm_dilate if sfm_dilate is not None else max(2, round(0.006 * float(np.hypot(*size))))
+        layer = None
+        if auto:
+            with rep.step("transients_auto") as st:
+                layer = propose(load, len(fids), size, progress=progress)
+                st.update(layer.seconds)
+        elif no_model:
+            rep.warn(f"no automatic transient layer: {no_model}; or paint the hand / person as `ignore` on the "
+                     f"keyframes", cause="no-hand-model")
+            if progress:
+                print(f"masks: no automatic transient layer: {no_model}")
         prop = Propagator(load, len(fids), size, n_track, cfg)
         ref = {p: np.array([(m == k + 1).mean() for k in range(n_track)]) for p, m in anchors.items()}
         fine_r = H.fine_radius(size[0], prop.wsize[0])
         cues = _Cues(len(fids), n_track)
         clear_transients(ds)  # this run's ignore class (or none) replaces any earlier transient layer
         transient_share = np.zeros(len(fids))
-        grey = n_obj + 1 if n_track > n_obj else None  # previews draw the ignore class grey
+        # previews draw the ignore class grey
+        grey = n_obj + 1 if n_track > n_obj or (layer is not None and layer.masks) else None
         sheet_pos = set(np.linspace(0, len(fids) - 1, min(len(fids), 24)).round().astype(int).tolist())
         tiles: dict[int, np.ndarray] = {}
         vid_w = min(480, size[0])
@@ -139,9 +155,10 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
                 pending: deque[Future] = deque()
                 for res in prop.run(anchors):
                     tw, cw = time.perf_counter(), time.process_time()
-                    transient_share[res.pos] = (res.labels == n_obj + 1).mean() if n_track > n_obj else 0.0
+                    labels = with_auto(res.labels, layer, res.pos, n_obj)
+                    transient_share[res.pos] = (labels == n_obj + 1).mean() if grey is not None else 0.0
                     pending.append(writer.submit(_write_frame, ds, fids[res.pos], images[res.pos].name,
-                                                 res.labels, n_obj, dil))
+                                                 labels, n_obj, dil))
                     while pending and pending[0].done():
                         pending.popleft().result()  # a failed write stops the stage here, not at the end
                     # the cues and the preview tiles go to the writer too: the chains' thread is the one the
@@ -152,12 +169,12 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
                         full = prop.cache.peek(res.pos)
                         cap = f"{fids[res.pos]}{' key' if res.keyframe else ''}"
                         if preview in ("sheet", "both") and res.pos in sheet_pos:
-                            pending.append(writer.submit(_tile, tiles, res.pos, full, load, res.labels, 240, cap,
+                            pending.append(writer.submit(_tile, tiles, res.pos, full, load, labels, 240, cap,
                                                          grey))
                         if preview in ("video", "both"):
                             # the work image is the video's size (WORK_LONG_SIDE = vid_w): no resize of the full one
                             src = work if work is not None and work.shape[1] == vid_w else full
-                            pending.append(writer.submit(_tile, video, res.pos, src, load, res.labels, vid_w, cap,
+                            pending.append(writer.submit(_tile, video, res.pos, src, load, labels, vid_w, cap,
                                                          grey))
                     t_write += time.perf_counter() - tw
                     c_write += time.process_time() - cw
@@ -236,6 +253,7 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
             "frames": int((transient_share > 0).sum()), "mean_share": round(float(transient_share.mean()), 5),
             "max_share": round(float(transient_share.max(initial=0.0)), 5),
             "share": {fids[i]: round(float(v), 5) for i, v in enumerate(transient_share) if v > 0}}
+        rep.figures["transients"]["auto"] = auto_figures(layer, fids, opt.transients, no_model)
         rep.figures["transients"]["occluded"] = {kf.names[k]: _stretch_text(fids, runs) for k, runs in occluded.items()}
         # frames where a chain found a collapsed object again from its keyframe's appearance (`redetect`)
         rep.figures["redetected"] = _event_frames(prop.redetections, fids, kf.names)
@@ -473,6 +491,42 @@ def _ref_area(ref: dict[int, np.ndarray], pos: int) -> np.ndarray:
         return ref[a]
     w = (pos - a) / (b - a)
     return (1 - w) * ref[a] + w * ref[b]
+
+
+def with_auto(labels: np.ndarray, layer: AutoLayer | None, pos: int, n_obj: int) -> np.ndarray:
+    """A tracked index map with the auto layer of frame `pos` added as the ignore class (n_obj + 1) where no object
+    is: a part in motion is not a transient."""
+    extra = layer.full(pos, (labels.shape[1], labels.shape[0])) if layer is not None else None
+    if extra is None:
+        return labels
+    out = labels.copy()
+    out[extra & (labels == 0)] = n_obj + 1
+    return out
+
+
+def auto_figures(layer: AutoLayer | None, fids: list[str], mode: str, no_model: str | None) -> dict[str, Any]:
+    """The report's account of the auto layer: how the hands were found, where, and what each cue cost."""
+    if layer is None:
+        return {"mode": mode, "ran": False, **({"why_not": no_model} if no_model else {})}
+    return {"mode": mode, "ran": True, "hands_found": round(layer.track.found_share(), 4),
+            "found_by": shares(layer.track), "frames": len(layer.masks),
+            "leaked": [fids[p] for p in layer.leaked], "seconds": layer.seconds}
+
+
+def transient_line(figures: dict[str, Any]) -> str | None:
+    """One line on the transient layer a masks run wrote (painted and automatic), None when it wrote none and
+    tried nothing."""
+    tr = figures.get("transients") or {}
+    auto = tr.get("auto") or {}
+    if not tr.get("frames") and not auto.get("ran"):
+        return None
+    how = []
+    if tr.get("ignore_keyframes"):
+        how.append(f"painted on {len(tr['ignore_keyframes'])} keyframes")
+    if auto.get("ran"):
+        how.append(f"auto: a hand found on {100 * auto['hands_found']:.0f} % of the frames")
+    return (f"transients: {tr.get('frames', 0)} frames, {100 * tr.get('mean_share', 0.0):.1f} % of the pixels on "
+            f"average (at most {100 * tr.get('max_share', 0.0):.0f} %)" + (f" ({'; '.join(how)})" if how else ""))
 
 
 def _write_frame(ds: Path, fid: str, image_name: str, labels: np.ndarray, n_obj: int, dilate: int) -> None:

@@ -35,7 +35,7 @@ AROUND = 0.4  # palm widths around the reach that GrabCut may grow into
 CONTEXT = 3.0  # palm widths around that of fixed background GrabCut learns the scene's colours from (a wooden
 #                shelf of the skin's colour away from the hand must be there, or the arm grows onto it)
 MAX_SHARE = 0.5  # a grown layer over this share of the frame leaked (onto a wall of the skin's colour): hull only
-GRABCUT_ITERS = 3
+GRABCUT_ITERS = 2
 ROUNDS = 3  # GrabCuts at most, each from the last one's region (an arm that bends leaves the band: the next follows)
 SETTLED = 0.05  # ... stopping once the region changes by less than this share of its area
 

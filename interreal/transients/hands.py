@@ -12,9 +12,12 @@ interpolating the landmarks (`fill_gaps`).
 
 from __future__ import annotations
 
+import os
+import sys
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Iterator, TextIO
 
 import numpy as np
 from tqdm import tqdm
@@ -46,7 +49,8 @@ def model_problem() -> str | None:
     try:
         import mediapipe as mp  # optional extra: installed by .ci/setup, not by pip install -e .
 
-        mp.solutions.hands.Hands(static_image_mode=True, max_num_hands=1).close()
+        with _quiet():
+            mp.solutions.hands.Hands(static_image_mode=True, max_num_hands=1).close()
     except Exception as exc:  # an ImportError, or protobuf >= 5 ("'FieldDescriptor' object has no attribute 'label'")
         why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         return f"the hand model (mediapipe {MEDIAPIPE_VERSION}) does not run here ({why}); install it with: {INSTALL}"
@@ -63,25 +67,48 @@ def find_hands(load: Callable[[int], np.ndarray], n: int, *, max_hands: int = 2,
     hands: list[np.ndarray] = [np.zeros((0, N_LANDMARKS, 2))] * n
     how = [""] * n
     seconds = {"tracking": 0.0, "static": 0.0}
-    with mp.solutions.hands.Hands(static_image_mode=False, max_num_hands=max_hands, model_complexity=1) as tracker:
-        for pos in tqdm(range(n), desc="hands", unit="frame", disable=not progress):
-            img = load(pos)
-            t = clock()
-            hands[pos] = _landmarks(tracker.process(np.ascontiguousarray(img)), img.shape)
-            seconds["tracking"] += clock() - t
-            how[pos] = "tracked" if len(hands[pos]) else ""
-    missed = [p for p in range(n) if not how[p]]
-    if missed:
-        with mp.solutions.hands.Hands(static_image_mode=True, max_num_hands=max_hands, model_complexity=1,
-                                      min_detection_confidence=STATIC_CONFIDENCE) as finder:
-            for pos in missed:
+    # TensorFlow Lite's start-up notes go to stderr from C++ (not the user's business); the bar to the real one
+    with _quiet() as stderr:
+        with mp.solutions.hands.Hands(static_image_mode=False, max_num_hands=max_hands, model_complexity=1) as tracker:
+            for pos in tqdm(range(n), desc="hands", unit="frame", disable=not progress, file=stderr):
                 img = load(pos)
                 t = clock()
-                hands[pos] = _landmarks(finder.process(np.ascontiguousarray(img)), img.shape)
-                seconds["static"] += clock() - t
-                how[pos] = "static" if len(hands[pos]) else ""
+                hands[pos] = _landmarks(tracker.process(np.ascontiguousarray(img)), img.shape)
+                seconds["tracking"] += clock() - t
+                how[pos] = "tracked" if len(hands[pos]) else ""
+        missed = [p for p in range(n) if not how[p]]
+        if missed:
+            with mp.solutions.hands.Hands(static_image_mode=True, max_num_hands=max_hands, model_complexity=1,
+                                          min_detection_confidence=STATIC_CONFIDENCE) as finder:
+                for pos in missed:
+                    img = load(pos)
+                    t = clock()
+                    hands[pos] = _landmarks(finder.process(np.ascontiguousarray(img)), img.shape)
+                    seconds["static"] += clock() - t
+                    how[pos] = "static" if len(hands[pos]) else ""
     hands, how = fill_gaps(hands, how)
     return HandTrack(hands, how, {k: round(v, 3) for k, v in seconds.items()})
+
+
+@contextmanager
+def _quiet() -> Iterator[TextIO]:
+    """Standard error silenced at the file-descriptor level (mediapipe's C++ logging ignores Python's streams);
+    yields a stream to the real one (for a progress bar). Where fd 2 cannot be swapped (no real stderr), as is."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):
+        yield sys.stderr
+        return
+    real = os.fdopen(os.dup(saved), "w", buffering=1)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            yield real
+    finally:
+        real.close()
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def _landmarks(result, shape: tuple[int, ...]) -> np.ndarray:

@@ -126,6 +126,17 @@ def distortion_loss(edges: torch.Tensor, weights: torch.Tensor, near: torch.Tens
     return (inter + intra).mean()
 
 
+def trimmed_mse(pred: torch.Tensor, target: torch.Tensor, trim: float) -> torch.Tensor:
+    """Mean squared colour error of (R, 3) rays less the `trim` share with the largest error (RobustNeRF's trimmed
+    L2, per batch): what the scene cannot explain at all (a hand, a passer-by no one painted) stops pulling on it.
+    Early in training every error is large and the cut moves with them (a quantile, not a fixed threshold)."""
+    err = ((pred - target) ** 2).mean(-1)
+    if trim <= 0 or err.numel() < 2:
+        return err.mean()
+    keep = err.detach() <= torch.quantile(err.detach(), 1.0 - trim)
+    return (err * keep).sum() / keep.sum().clamp_min(1)
+
+
 def psnr(mse: torch.Tensor | float) -> float:
     m = float(mse)
     return 100.0 if m <= 1e-10 else -10.0 * math.log10(m)
@@ -166,6 +177,7 @@ def _proposal_sum(x: LossInputs, loss: Callable[[KPlanes], torch.Tensor]):
 # name (= its weight in LossConfig) -> (term, is a regulariser: evaluated every `reg_every` steps, weighted up by it)
 TERMS: dict[str, tuple[Term, bool]] = {
     "rgb": (lambda x, w: ((x.out.rgb - x.batch["rgb"]) ** 2).mean(), False),
+    "rgb_trimmed": (lambda x, w: trimmed_mse(x.out.rgb, x.batch["rgb"], w.trim), False),
     "interlevel": (lambda x, w: interlevel_loss(x.out.edges, x.out.weights, x.out.proposals)
                    if x.out.proposals else None, False),
     "distortion": (lambda x, w: distortion_loss(x.out.edges, x.out.weights, x.out.near, x.out.far), False),

@@ -25,7 +25,7 @@ from benchlib import bench_args, print_table, write_results
 ROUTE_NAMES = ("sfm", "pnp", "silhouette", "stage")
 
 
-HARD = {"furniture": "plain", "exposure_drift": 0.2, "noise": 3.0, "occluder": 0.3}  # --hard: as real captures are
+HARD = {"furniture": "plain", "exposure_drift": 0.2, "noise": 3.0, "occluder": 0.3, "arm": True}  # --hard: as real captures are
 
 
 def make_dataset(root: Path, seed: int, frames: int, size: tuple[int, int], **synth) -> tuple[Path, Path]:

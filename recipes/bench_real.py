@@ -29,6 +29,9 @@ each corner gives alone). On synthetic marks with 0.5 px noise the reference's s
 (`livescene eval`, 8 frames) and, per held-out camera, the share of the lid's pixels whose rendered colour changes
 between states 0 and 1, and whether the hand shows (`hand_shows`: PSNR against the captured frames inside the
 transient layer's pixels and elsewhere; a scene that baked the hand in reproduces it there).
+
+`--transients auto` runs it with nothing painted but the lid (the keyframes' hand and person shapes dropped) and the
+transient layer from `--transients auto`; `--transients none` with neither.
 """
 
 from __future__ import annotations
@@ -57,17 +60,35 @@ def _extra(p) -> None:
     p.add_argument("--reuse", action="store_true", help="keep an existing OUT/real_ds (re-measure motions only)")
     p.add_argument("--train-minutes", type=float, default=0.0, help="then train this long (cpu preset) and measure "
                    "held-out PSNR / SSIM and the lid's pixel change between states 0 and 1 (default 0: skip)")
+    p.add_argument("--transients", default="painted", choices=("painted", "auto", "none"),
+                   help="the hand and the person: painted on the fixture keyframes (default), found by "
+                        "`--transients auto` with nothing painted, or neither (the baseline that bakes them in)")
     p.add_argument("--routes", default="sfm,pnp", help="`interreal motions --route` values to run (the route tried "
                    "first: sfm, the part's own SfM; pnp, known-camera PnP); default sfm,pnp")
 
 
-def run_process(video: Path, ds: Path, every: int, long_side: int) -> dict:
-    """Frames, masks, poses and labels; per-stage seconds from reports/process.json."""
+def objects_only(keyframes: Path, out: Path) -> Path:
+    """A copy of LabelMe keyframes without their ignore-class shapes (hand, person): nothing painted but objects."""
+    from interreal.transients import IGNORE_LABELS
+
+    out.mkdir(parents=True, exist_ok=True)
+    for src in sorted(keyframes.glob("*.json")):
+        doc = json.loads(src.read_text())
+        doc["shapes"] = [s for s in doc["shapes"] if s["label"].strip().lower() not in IGNORE_LABELS]
+        (out / src.name).write_text(json.dumps(doc))
+    return out
+
+
+def run_process(video: Path, ds: Path, every: int, long_side: int, transients: str = "painted") -> dict:
+    """Frames, masks, poses and labels; per-stage seconds from reports/process.json. transients: painted (the
+    fixture keyframes as they are, no auto layer), auto (their objects only, `--transients auto`) or none."""
     from interreal.process import process
 
+    keys = FIXTURES / "keyframes" if transients == "painted" else objects_only(FIXTURES / "keyframes",
+                                                                               ds.parent / "keyframes_objects")
     t0 = time.perf_counter()
-    fig = process(video, ds, keyframes=FIXTURES / "keyframes", labels=FIXTURES / "labels.yaml", every=every,
-                  long_side=long_side, motions=False)
+    fig = process(video, ds, keyframes=keys, labels=FIXTURES / "labels.yaml", every=every,
+                  long_side=long_side, motions=False, transients="auto" if transients == "auto" else "off")
     steps = json.loads((ds / "reports" / "process.json").read_text()).get("steps", {})
     return {"process_s": round(time.perf_counter() - t0, 1), "registered": fig.get("registered"),
             "frames": fig.get("total"), **{f"{k}_s": round(v.get("wall_s", 0.0), 1) for k, v in steps.items()}}
@@ -242,9 +263,10 @@ def main() -> None:
     long_side = args.long_side or (800 if args.quick else 1072)
     video = require_shared("laptop", "laptop_orbit.mp4")
     ds = args.out / "real_ds"
-    run: dict = {"data": "laptop_orbit", "every": every, "long_side": long_side, "threads": args.threads}
+    run: dict = {"data": "laptop_orbit", "every": every, "long_side": long_side, "threads": args.threads,
+                 "transients": args.transients}
     if not (args.reuse and (ds / "transforms.json").exists()):
-        run.update(run_process(video, ds, every, long_side))
+        run.update(run_process(video, ds, every, long_side, args.transients))
     runs = []
     for route in args.routes.split(","):
         r = dict(run, **run_motions(ds, args.threads, route.strip()), variant=route.strip())

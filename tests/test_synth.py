@@ -370,3 +370,29 @@ def test_plain_furniture_paints_the_parts_and_keeps_the_rest_of_the_capture():
     assert np.abs(grey(a)[room] - grey(b)[room]).mean() < 0.5 * np.abs(grey(a)[room]).mean()  # the room stays
     with pytest.raises(InputError, match="furniture"):
         SynthConfig(furniture="chrome").check()
+
+
+def test_an_arm_holds_each_part_while_it_moves():
+    """`arm`: a skin hand at the moving part and a sleeve of another colour from the image edge, in the occluder
+    class (255) of the truth, only while a part moves; the clean render and every capture without it unchanged."""
+    base = dict(frames=60, width=160, height=120, seed=4, parts=1)
+    plain, arm = build_scene(SynthConfig(**base)), build_scene(SynthConfig(**base, arm=True))
+    moving = [t for t in range(60) if arm.moving(t)]
+    still = [t for t in range(60) if not arm.moving(t)]
+    assert moving and still
+    for t in moving[:: max(1, len(moving) // 4)]:
+        r = arm.render_frame(t)
+        occ = r.instance == 255
+        assert 0.005 < occ.mean() < 0.4
+        ys, xs = np.nonzero(occ)
+        assert ys.max() >= 118 or xs.max() >= 158  # it enters from the image edge
+        colours = r.rgb[occ].astype(float)
+        green = colours[:, 1] > colours[:, 0] + 20  # the sleeve
+        skin = (colours[:, 0] > colours[:, 1] + 20) & (colours[:, 0] > 120)  # the hand
+        assert green.mean() > 0.5 and skin.sum() > 0
+    for t in still[:3]:
+        assert not (arm.render_frame(t).instance == 255).any()
+        assert np.array_equal(arm.render_frame(t).rgb, plain.render_frame(t).rgb)
+    i = moving[len(moving) // 2]
+    assert np.array_equal(arm.render(arm.camera_path()[i], arm.states()[i]).rgb,
+                          plain.render(plain.camera_path()[i], plain.states()[i]).rgb)  # clean: no arm

@@ -49,6 +49,8 @@ class SynthConfig:
     speed: float = option(1.0, "camera speed multiplier (fast motion: the arc is swept back and forth)")
     jitter: float = option(1.0, "hand-shake scale (0 = tripod-smooth)")
     occluder: float = option(0.0, "fraction of frames a person walks across the view, 0-1")
+    arm: bool = option(False, "a hand and a sleeved forearm reach in from the image edge and hold each part while "
+                              "it moves (in front of it, as in a real capture)")
     articulation: float = option(1.0, "scale of each part's range of motion (angle / slide length)")
     room_scale: float = option(1.0, "room floor plan and camera distance x this, 0.65-2.5; furniture keeps its size "
                                     "(1: 6 x 5 m; 0.7 small, 1.6 large)")

@@ -245,6 +245,14 @@ class _Builder:
         skin = self.tex("skin", self.tm.low((0.85, 0.65, 0.52)))
         return shirt, trousers, skin
 
+    def sleeve_tile(self) -> int:
+        """The arm's sleeve: another colour than the skin (a green jumper), made only when the arm is on (the
+        other tiles and so every render without it stay as they were)."""
+        return self.tex("sleeve", self.tm.low((0.2, 0.45, 0.25)))
+
+
+ARM_REACH = 0.03  # share of the capture's frames before and after a part's motion that the hand holding it is in view
+
 
 def room_bounds(room_scale: float) -> tuple[np.ndarray, np.ndarray]:
     """The room box for `room_scale` s: scaled about the back wall's foot (x = 0, y = 2.5), ceiling never lower."""
@@ -329,6 +337,7 @@ class Scene:
         self._static, all_parts = _fit_room(cfg, *b.furniture())
         b.stream(3)
         self._occ_tiles = b.occluder_tiles()
+        self._sleeve = b.sleeve_tile() if cfg.arm else None
         self.atlas = b.atlas.build()
         self.parts = all_parts[: cfg.parts]
         self._fixed_parts = [p for p in all_parts[cfg.parts:] if p is not None]  # closed, static scenery
@@ -441,6 +450,8 @@ class Scene:
             place = self.occluder.placement(time)
             if place is not None:
                 groups.append(self._person(*place))
+            if self._sleeve is not None:
+                groups += [self._arm(time, self.parts[k], states[k]) for k in self.moving(time)]
         return Prims(**{f: np.concatenate([getattr(g, f) for g in groups]) for f in Prims.__dataclass_fields__})
 
     def _to_prims(self, boxes: list[BoxSpec], inst: int, R: np.ndarray | None = None,
@@ -475,6 +486,47 @@ class Scene:
             offset=np.zeros((n, 6, 2)),
             inverted=np.zeros(n, bool),
         )
+
+    def moving(self, time: float) -> list[int]:
+        """Parts the hand holds at `time`: those whose schedule moves within `ARM_REACH` of the capture of it (the
+        hand arrives before the motion and leaves after it)."""
+        out = []
+        reach = ARM_REACH * self.cfg.frames
+        for k, sch in enumerate(self.schedules):
+            ts = np.linspace(time - reach, time + reach, 9)
+            if float(np.ptp(sch.value(ts))) > 1e-4:
+                out.append(k)
+        return out
+
+    def _arm(self, time: float, part: Part, state: float) -> Prims:
+        """A hand at the part's grasp point (its box centre, pushed out of it toward the camera) and a sleeved
+        forearm from there to a shoulder below and to the right of the camera, so it enters from the image edge."""
+        cam = self.path.pose_cv(float(np.clip(time, 0, self.cfg.frames - 1)))
+        eye, right, down = cam[:3, 3], cam[:3, 0], cam[:3, 1]
+        R, t = part.pose(float(np.clip(state, 0.0, 1.0)))
+        lo = np.min([bx.lo for bx in part.boxes], axis=0)
+        hi = np.max([bx.hi for bx in part.boxes], axis=0)
+        centre, half = (lo + hi) / 2, (hi - lo) / 2
+        d_rest = R.T @ (eye - (R @ centre + t))  # toward the camera, in the part's rest frame
+        d_rest /= np.linalg.norm(d_rest)
+        exit_t = float(np.min(half / np.maximum(np.abs(d_rest), 1e-9)))
+        grasp = R @ (centre + d_rest * (exit_t + 0.06)) + t
+        shoulder = eye + 0.6 * down + 0.45 * right - 0.1 * cam[:3, 2]
+        axis = grasp - shoulder
+        length = float(np.linalg.norm(axis))
+        axis /= length
+        side = np.cross(axis, [0.0, 0.0, 1.0])
+        side = side / np.linalg.norm(side) if np.linalg.norm(side) > 1e-6 else np.array([1.0, 0.0, 0.0])
+        Rb = np.stack([axis, side, np.cross(axis, side)], axis=1)
+        skin = self._occ_tiles[2]
+        hand_len, forearm = 0.16, max(0.05, length - 0.14)  # the hand (with fingers) from under the cuff
+        boxes = [(shoulder + axis * forearm / 2, (forearm / 2, 0.04, 0.04), self._sleeve),
+                 (grasp - axis * hand_len / 2, (hand_len / 2, 0.05, 0.022), skin)]
+        n = len(boxes)
+        return Prims(R=np.repeat(Rb[None], n, axis=0), c=np.array([c for c, _, _ in boxes]),
+                     h=np.array([h for _, h, _ in boxes], float), inst=np.full(n, OCCLUDER, np.uint8),
+                     tile=np.array([[tile] * 6 for _, _, tile in boxes], np.int64), scale=np.full((n, 6), 0.8),
+                     offset=np.zeros((n, 6, 2)), inverted=np.zeros(n, bool))
 
     def exposure(self, frame: int | float | None) -> float:
         if frame is None or self.cfg.exposure_drift <= 0:

@@ -348,8 +348,13 @@ def test_annotate_page_paints_ignore(browser, tmp_path):
     """In the page: pick "ignore (person / hand)", drag a box: the keyframe PNG holds 254 there, drawn grey."""
     from interreal.annotate.server import AnnotateServer
 
+    from interreal.transients import write_transient
+
     ds, _ = _toy(tmp_path)
     atomic.write_yaml(ds / "mapping.yaml", {0: "box"})
+    found = np.zeros((72, 96), bool)
+    found[0:20, 10:20] = True  # what `--transients auto` found on frame 5 (an arm from the top edge)
+    write_transient(ds, "00005", found)
     srv = AnnotateServer(ds, port=0).start()
     try:
         page = browser.new_context(viewport={"width": 1280, "height": 860}, bypass_csp=True).new_page()
@@ -377,6 +382,15 @@ def test_annotate_page_paints_ignore(browser, tmp_path):
                 && Math.abs(d[i + 1] - 158) < 4
                 && Math.abs(d[i + 2] - 158) < 4) n++; return n; }""")
         assert grey > 0.8 * 20 * 30, grey  # the 20x30 px box, grey (158, 158, 158)
+        # the Found tool: one click on a found hand keeps it as painted ignore on that keyframe
+        page.click('.thumb[data-fid="00005"]')
+        page.wait_for_function("location.hash === '#f=00005'")
+        page.click("#tool-found")
+        n = int(page.get_attribute("body", "data-saves") or 0)
+        page.mouse.click(bb["x"] + 15 * sx, bb["y"] + 10 * sy)
+        page.wait_for_function(f"+(document.body.dataset.saves || 0) > {n}", timeout=120000)
+        index = cv2.imread(str(ds / "keyframes" / "00005.png"), 0)
+        assert (index == IGNORE).sum() == 20 * 10 and (index[0:20, 10:20] == IGNORE).all()
         assert not errors, errors
     finally:
         srv.stop()

@@ -224,3 +224,97 @@ def test_model_problem_names_the_install_when_mediapipe_is_broken(monkeypatch):
     monkeypatch.setattr(builtins, "__import__", broken)
     problem = Hd.model_problem()
     assert problem and "No module named 'mediapipe'" in problem and "--no-deps mediapipe==0.10.21" in problem
+
+
+def test_one_click_keeps_a_found_hand_as_painted_ignore(tmp_path):
+    """The annotate app's Found tool: a click on a region of the transient layer paints that region (only) as the
+    ignore class on the keyframe; erase takes it out again; a click elsewhere, or with an object selected, is refused
+    with what to do."""
+    from interreal.annotate.store import IGNORE_OBJECT, DatasetStore
+    from interreal.errors import InputError
+    from interreal.transients import IGNORE, write_transient
+
+    ds = tmp_path / "ds"
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        atomic.write_image(ds / "images" / f"{frame_name(i)}.png", rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
+    atomic.write_yaml(ds / "mapping.yaml", {0: "door"})
+    layer = np.zeros((48, 64), bool)
+    layer[0:20, 40:50] = True  # an arm from the top edge
+    layer[30:40, 5:15] = True  # another region (a second hand)
+    write_transient(ds, fid_of_index(1), layer)
+    store = DatasetStore(ds)
+    index, versions = store.edit_keyframe("00001", {"object": IGNORE_OBJECT, "shape": "found", "points": [[44, 10]],
+                                                    "mode": "paint", "versions": {}})
+    assert (index == IGNORE).sum() == 200 and (index[0:20, 40:50] == IGNORE).all() and index[35, 10] == 0
+    index, versions = store.edit_keyframe("00001", {"object": IGNORE_OBJECT, "shape": "found", "points": [[38, 10]],
+                                                    "mode": "paint", "versions": versions})  # 2 px off: snaps
+    assert (index == IGNORE).sum() == 200
+    index, versions = store.edit_keyframe("00001", {"object": IGNORE_OBJECT, "shape": "found", "points": [[44, 10]],
+                                                    "mode": "erase", "versions": versions})
+    assert not (index == IGNORE).any()
+    with pytest.raises(InputError, match="click inside a grey region"):
+        store.edit_keyframe("00001", {"object": IGNORE_OBJECT, "shape": "found", "points": [[25, 44]],
+                                      "mode": "paint", "versions": versions})
+    with pytest.raises(InputError, match="select 'ignore'"):
+        store.edit_keyframe("00001", {"object": 0, "shape": "found", "points": [[44, 10]], "mode": "paint",
+                                      "versions": versions})
+    with pytest.raises(InputError, match="run `interreal masks`"):
+        store.edit_keyframe("00002", {"object": IGNORE_OBJECT, "shape": "found", "points": [[44, 10]],
+                                      "mode": "paint", "versions": {}})
+
+
+def test_a_keyframe_that_paints_ignore_gets_no_proposal(tmp_path, monkeypatch):
+    """Where the user painted the ignore class on a keyframe, that painting is the layer there: a proposal the
+    user took out does not come back on that keyframe."""
+    from interreal.synth import Capture, SynthConfig, write_capture
+    from interreal.transients import IGNORE
+
+    cap = Capture.open(write_capture(SynthConfig(frames=6, width=96, height=72, keyframe_every=3, seed=2),
+                                     tmp_path / "cap", progress=False))
+    ds = tmp_path / "ds"
+    for i, rgb in cap.frames():
+        atomic.write_image(ds / "images" / f"{frame_name(i)}.png", rgb)
+    keys = tmp_path / "keys"
+    key = cap.instance(0).copy()
+    key[0:6, 0:6] = IGNORE  # a small painted patch far from the proposal
+    atomic.write_image(keys / f"{fid_of_index(0)}.png", key)
+    atomic.write_yaml(keys / "mapping.yaml", dict(enumerate(cap.names)))
+    block = np.zeros((72, 96), bool)
+    block[40:70, 60:90] = True
+
+    def fake(load, n, size, **kw):
+        track = Hd.HandTrack([np.zeros((1, 21, 2))] * n, ["tracked"] * n)
+        return A.AutoLayer({p: block for p in range(n)}, size, track, [], {})
+
+    monkeypatch.setattr("interreal.masks.stage.propose", fake)
+    monkeypatch.setattr("interreal.masks.stage.model_problem", lambda: None)
+    propagate(ds, keys, preview="none", progress=False)
+    on_key = read_transient(ds, fid_of_index(0), (72, 96))
+    assert on_key is not None and not on_key[40:70, 60:90].any() and on_key[0:6, 0:6].all()
+    other = read_transient(ds, fid_of_index(4), (72, 96))
+    assert other is not None and other[45:65, 65:85].mean() > 0.9
+
+
+def test_the_found_tool_over_http(tmp_path):
+    """The page's Found click goes through the server as shape 'found' with one point."""
+    pytest.importorskip("fastapi")
+    from fastapi.testclient import TestClient
+
+    from interreal.annotate.server import create_app
+    from interreal.transients import IGNORE, write_transient
+
+    ds = tmp_path / "ds"
+    rng = np.random.default_rng(1)
+    atomic.write_image(ds / "images" / f"{frame_name(0)}.png", rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
+    atomic.write_yaml(ds / "mapping.yaml", {0: "door"})
+    layer = np.zeros((48, 64), bool)
+    layer[0:20, 40:50] = True
+    write_transient(ds, fid_of_index(0), layer)
+    c = TestClient(create_app(ds, "tok", 8765), base_url="http://127.0.0.1:8765")
+    c.headers.update({"X-Interreal-Token": "tok"})
+    r = c.post("/api/keyframe/00000", json={"object": -1, "shape": "found", "points": [[44.5, 3.2]], "mode": "paint",
+                                            "versions": {}})
+    assert r.status_code == 200, r.text
+    written = cv2.imread(str(ds / "keyframes" / "00000.png"), cv2.IMREAD_UNCHANGED)
+    assert (written == IGNORE).sum() == 200

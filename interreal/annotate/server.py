@@ -289,7 +289,7 @@ def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1",
 
     @app.post("/api/keyframe/{fid}")
     def edit_keyframe(fid: str, b: Fields = Depends(body)):
-        op = {"object": b.integer("object"), "name": b.text("name", None), "shape": b.choice("shape", ("polygon", "box")),
+        op = {"object": b.integer("object"), "name": b.text("name", None), "shape": b.choice("shape", ("polygon", "box", "found")),
               "points": b.points("points"), "mode": b.choice("mode", ("paint", "erase")),
               "versions": b.versions("versions")}
         index, versions = store.edit_keyframe(fid, op)

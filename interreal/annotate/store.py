@@ -40,6 +40,7 @@ from .pixels import rasterise as rasterise_shape
 
 _read_index_png = read_index_png  # the name the tests use
 
+FOUND_SNAP = 6  # px: a click this close to a found region picks it
 IGNORE_OBJECT = -1  # `object` of a stroke that paints the ignore class (people, hands: value 254 in the PNG)
 THUMB_WIDTH = 160
 UNDO_DEPTH = 50  # strokes remembered per keyframe (in memory, for this server run)
@@ -407,7 +408,7 @@ class DatasetStore:
             raise InputError(f"frame {fid} is annotated in keyframes/{fid}.json (LabelMe): edit it in LabelMe, "
                              f"or delete that file to draw this keyframe here")
         w, h = self.image_size(fid)
-        region = rasterise_shape(op, w, h)
+        region = self._found_region(fid, op, w, h) if op.get("shape") == "found" else rasterise_shape(op, w, h)
         mode = op.get("mode", "paint")
         if mode not in ("paint", "erase"):
             raise InputError(f"mode {str(mode)[:40]!r}: use paint or erase")
@@ -451,6 +452,36 @@ class DatasetStore:
             stack.append((before, after))
             del stack[:-UNDO_DEPTH]
             return index, after
+
+    def _found_region(self, fid: str, op: dict[str, Any], w: int, h: int) -> np.ndarray:
+        """The part of the frame's transient layer (a hand or arm `--transients auto` found, or the propagated ignore
+        class) connected to the one clicked point: one click keeps it as painted ignore, or erases that painting."""
+        if op.get("object") != IGNORE_OBJECT:
+            raise InputError("a found hand or arm is kept as the ignore class: select 'ignore' (people, hands) first")
+        pts = op.get("points")
+        try:
+            x, y = (float(v) for v in np.asarray(pts, dtype=np.float64).reshape(2))
+        except (TypeError, ValueError):
+            raise InputError("a found region is picked by one [x, y] point in image pixels") from None
+        if not (np.isfinite(x) and np.isfinite(y)):
+            raise InputError("a found region is picked by one finite [x, y] point")
+        try:
+            layer = read_transient(self.ds, fid, (h, w))
+        except DatasetError as exc:
+            raise InputError(f"the transient layer of frame {fid} is unreadable ({exc}); re-run `interreal masks`") from None
+        col, row = min(w - 1, max(0, int(x))), min(h - 1, max(0, int(y)))
+        if layer is None or not layer.any():
+            raise InputError(f"nothing was found on frame {fid} (no transient layer there): run `interreal masks` "
+                             f"(--transients auto finds hands and arms), or draw the hand with the polygon")
+        n, comp = cv2.connectedComponents(layer.astype(np.uint8))
+        k = comp[row, col]
+        if k == 0:
+            near = comp[max(0, row - FOUND_SNAP): row + FOUND_SNAP + 1, max(0, col - FOUND_SNAP): col + FOUND_SNAP + 1]
+            hits = near[near > 0]
+            if not hits.size:
+                raise InputError(f"no found hand or arm at ({col}, {row}) on frame {fid}: click inside a grey region")
+            k = int(np.bincount(hits).argmax())
+        return comp == k
 
     def undo_keyframe(self, fid: str, versions: dict[str, str]) -> tuple[np.ndarray | None, dict[str, str]]:
         """Take back the last stroke on a keyframe, if the keyframe is still exactly as that stroke left it."""

@@ -136,6 +136,7 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
         cues = _Cues(len(fids), n_track)
         clear_transients(ds)  # this run's ignore class (or none) replaces any earlier transient layer
         transient_share = np.zeros(len(fids))
+        painted = {pos_of[f] for f, m in kf.masks.items() if (m == IGNORE).any()}
         # previews draw the ignore class grey
         grey = n_obj + 1 if n_track > n_obj or (layer is not None and layer.masks) else None
         sheet_pos = set(np.linspace(0, len(fids) - 1, min(len(fids), 24)).round().astype(int).tolist())
@@ -155,7 +156,8 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
                 pending: deque[Future] = deque()
                 for res in prop.run(anchors):
                     tw, cw = time.perf_counter(), time.process_time()
-                    labels = with_auto(res.labels, layer, res.pos, n_obj)
+                    # a keyframe that paints the ignore class says what is transient there: no proposal over it
+                    labels = with_auto(res.labels, None if res.pos in painted else layer, res.pos, n_obj)
                     transient_share[res.pos] = (labels == n_obj + 1).mean() if grey is not None else 0.0
                     pending.append(writer.submit(_write_frame, ds, fids[res.pos], images[res.pos].name,
                                                  labels, n_obj, dil))

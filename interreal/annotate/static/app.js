@@ -355,6 +355,7 @@ function setupDrawing() {
     if (Math.abs(d.to[0] - d.from[0]) >= 1 && Math.abs(d.to[1] - d.from[1]) >= 1) submitShape("box", [d.from, d.to]);
   });
   c.addEventListener("click", (ev) => {
+    if (S.tool === "found") { submitShape("found", [imagePoint(ev)]); return; }
     if (S.tool !== "polygon") return;
     const p = imagePoint(ev);
     if (S.pts.length >= 3 && screenDist(p, S.pts[0]) < 8) { closePolygon(); return; }
@@ -670,6 +671,7 @@ function setupKeys() {
     else if (ev.key === "ArrowRight") { ev.preventDefault(); goto(S.cur + 1); }
     else if (ev.key === "p") setTool("polygon");
     else if (ev.key === "b") setTool("box");
+    else if (ev.key === "f") setTool("found");
     else if (ev.key === "e") setMode(S.mode === "erase" ? "paint" : "erase");
     else if (ev.key === "Enter" && S.tool === "polygon" && S.pts.length) { ev.preventDefault(); closePolygon(); }
     else if (ev.key === "Escape") { S.pts = []; S.drag = null; renderDraw(); }

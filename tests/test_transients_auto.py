@@ -318,3 +318,36 @@ def test_the_found_tool_over_http(tmp_path):
     assert r.status_code == 200, r.text
     written = cv2.imread(str(ds / "keyframes" / "00000.png"), cv2.IMREAD_UNCHANGED)
     assert (written == IGNORE).sum() == 200
+
+
+def test_a_growth_over_half_the_frame_keeps_the_hand_and_is_warned(tmp_path, monkeypatch):
+    """GrabCut that leaks onto a wall of the skin's colour: the frame keeps the hand's outline only, the report names
+    the frame (cause transient-leak)."""
+    from interreal.report import read_report
+    from interreal.synth import Capture, SynthConfig, write_capture
+
+    hand = _hand((48, 40), (0, 1), 12)[None]
+
+    def hands(load, n, **kw):
+        return Hd.HandTrack([hand if p == 1 else np.zeros((0, 21, 2)) for p in range(n)],
+                            ["tracked" if p == 1 else "" for p in range(n)], {"tracking": 0.0, "static": 0.0})
+
+    monkeypatch.setattr(A, "find_hands", hands)
+    monkeypatch.setattr(A, "grow_rounds", lambda img, core, reach: np.ones_like(core))  # everything: a leak
+    frames = [np.zeros((72, 96, 3), np.uint8)] * 3
+    layer = A.propose(lambda p: frames[p], 3, (96, 72))
+    assert layer.leaked == [1] and 0 < layer.masks[1].mean() < 0.2
+
+    cap = Capture.open(write_capture(SynthConfig(frames=3, width=96, height=72, keyframe_every=2, seed=2),
+                                     tmp_path / "cap", progress=False))
+    ds = tmp_path / "ds"
+    for i, rgb in cap.frames():
+        atomic.write_image(ds / "images" / f"{frame_name(i)}.png", rgb)
+    keys = tmp_path / "keys"
+    atomic.write_image(keys / f"{fid_of_index(0)}.png", cap.instance(0))
+    atomic.write_yaml(keys / "mapping.yaml", dict(enumerate(cap.names)))
+    monkeypatch.setattr("interreal.masks.stage.model_problem", lambda: None)
+    fig = propagate(ds, keys, preview="none", progress=False)
+    assert fig["transients"]["auto"]["leaked"] == [fid_of_index(1)]
+    warned = [w for w in read_report(ds, "masks")["warnings"] if w.get("cause") == "transient-leak"]
+    assert len(warned) == 1 and fid_of_index(1) in warned[0]["message"]

@@ -258,11 +258,10 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
         rep.figures["transients"]["auto"] = auto_figures(layer, fids, opt.transients, no_model)
         if layer is not None and layer.leaked:
             leaked = [fids[p] for p in layer.leaked]
-            rep.warn(f"transients auto: at frames {', '.join(leaked[:8])}{' ...' if len(leaked) > 8 else ''} the found "
-                     f"hand grew over "
-                     f"half the frame (a wall of the skin's colour?); only the hand itself was kept there: check them in "
-                     f"`interreal annotate` and paint the arm as ignore where it matters", cause="transient-leak",
-                     frames=leaked)
+            rep.warn(f"transients auto: at frames {', '.join(leaked[:8])}{' ...' if len(leaked) > 8 else ''} the "
+                     f"found hand grew over half the frame (a wall of the skin's colour?); only the hand itself was "
+                     f"kept there: check them in `interreal annotate` and paint the arm as ignore where it matters",
+                     cause="transient-leak", frames=leaked)
         rep.figures["transients"]["occluded"] = {kf.names[k]: _stretch_text(fids, runs) for k, runs in occluded.items()}
         # frames where a chain found a collapsed object again from its keyframe's appearance (`redetect`)
         rep.figures["redetected"] = _event_frames(prop.redetections, fids, kf.names)

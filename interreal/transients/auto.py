@@ -31,8 +31,8 @@ WORK_LONG_SIDE = 480  # px: GrabCut's resolution (a hand is tens of pixels wide 
 BAND_WIDTH = 0.3  # the forearm band's width, in hand lengths (wrist to middle knuckle): the forearm's spine, not its
 #                  width; a band as wide as the arm teaches GrabCut the colours beside it as the arm's
 CORE_ERODE = 0.1  # the core: the landmarks' hull eroded by this many palm widths (their outline is on the skin)
-AROUND = 0.4  # palm widths around the reach that GrabCut may grow into
-CONTEXT = 3.0  # palm widths around that of fixed background GrabCut learns the scene's colours from (a wooden
+AROUND = 0.4  # hand sizes (the square root of the core's area) around the reach that GrabCut may grow into
+CONTEXT = 3.0  # hand sizes around that of fixed background GrabCut learns the scene's colours from (a wooden
 #                shelf of the skin's colour away from the hand must be there, or the arm grows onto it)
 MAX_SHARE = 0.5  # a grown layer over this share of the frame leaked (onto a wall of the skin's colour): hull only
 GRABCUT_ITERS = 2
@@ -94,7 +94,7 @@ def propose(load: Callable[[int], np.ndarray], n: int, size: tuple[int, int], *,
         grown = grow_rounds(small(pos), core, reach)
         if grown.mean() > MAX_SHARE:
             leaked.append(pos)
-            grown = reach & ~band_only(track.hands[pos], (wsize[1], wsize[0]))
+            grown = hulls(track.hands[pos], (wsize[1], wsize[0]))
         if grown.any():
             masks[pos] = grown
     return AutoLayer(masks, wsize, track, leaked, {**track.seconds, "grow": round(clock() - t0, 3)})
@@ -105,26 +105,29 @@ def seeds(hands: np.ndarray, hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarra
     core = np.zeros(hw, np.uint8)
     reach = np.zeros(hw, np.uint8)
     for hand in hands:
-        hull = np.zeros(hw, np.uint8)
-        cv2.fillConvexPoly(hull, cv2.convexHull(np.round(hand).astype(np.int32)), 1)
-        palm = hand_scale(hand)
-        r = max(1, round(CORE_ERODE * palm))
-        inner = cv2.erode(hull, _disk(r))
+        hull = _hull(hand, hw)
+        inner = cv2.erode(hull, _disk(max(1, round(CORE_ERODE * hand_scale(hand)))))
         core |= inner if inner.any() else hull
-        reach |= hull | _forearm(hand, hw, palm)
+        reach |= hull | _forearm(hand, hw)
     return core > 0, reach > 0
 
 
-def band_only(hands: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
-    """The forearm bands of hands, without their hulls."""
-    out = np.zeros(hw, bool)
+def hulls(hands: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    """The convex hulls of the hands' landmarks, (H, W) bool: the hands themselves, no arm."""
+    out = np.zeros(hw, np.uint8)
     for hand in hands:
-        out |= _forearm(hand, hw, hand_scale(hand)) > 0
-    return out
+        out |= _hull(hand, hw)
+    return out > 0
 
 
-def _forearm(hand: np.ndarray, hw: tuple[int, int], palm: float) -> np.ndarray:
-    """A band from the wrist, away from the middle knuckle, to past the image edge, BAND_WIDTH palms wide."""
+def _hull(hand: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    hull = np.zeros(hw, np.uint8)
+    cv2.fillConvexPoly(hull, cv2.convexHull(np.round(hand).astype(np.int32)), 1)
+    return hull
+
+
+def _forearm(hand: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    """A band from the wrist, away from the middle knuckle, to past the image edge, BAND_WIDTH hand lengths wide."""
     band = np.zeros(hw, np.uint8)
     d = hand[WRIST] - hand[MIDDLE_MCP]
     norm = float(np.linalg.norm(d))
@@ -153,10 +156,10 @@ def grow(img: np.ndarray, core: np.ndarray, reach: np.ndarray, iters: int = GRAB
     run on the box around them; the grown region connected to the core, (H, W) bool."""
     if not core.any():
         return core
-    palm = max(4.0, np.sqrt(core.sum()))
-    near = cv2.dilate(reach.astype(np.uint8), _disk(max(2, round(AROUND * palm)))) > 0
+    size = max(4.0, float(np.sqrt(core.sum())))
+    near = cv2.dilate(reach.astype(np.uint8), _disk(max(2, round(AROUND * size)))) > 0
     ys, xs = np.nonzero(near)
-    pad = max(4, round(CONTEXT * palm))
+    pad = max(4, round(CONTEXT * size))
     y0, y1 = max(0, ys.min() - pad), min(img.shape[0], ys.max() + pad + 1)
     x0, x1 = max(0, xs.min() - pad), min(img.shape[1], xs.max() + pad + 1)
     box = np.s_[y0:y1, x0:x1]

@@ -242,6 +242,20 @@ def _list_folder(folder: Path) -> list[Path]:
     return files
 
 
+def mixed_sizes_message(folder: Path, sizes: dict[tuple[int, int], list[str]]) -> str:
+    """Why a folder of photos of several sizes is refused, and what to do: photos of one camera held both ways
+    (portrait and landscape, the same size turned) are told so, not to resize."""
+    desc = "; ".join(f"{w}x{h}: {len(n)} files (e.g. {n[0]})" for (w, h), n in sorted(sizes.items()))
+    if len(sizes) == 2:
+        (a, na), (b, nb) = sorted(sizes.items(), key=lambda kv: -len(kv[1]))
+        if a == b[::-1]:
+            turned = "portrait" if b[1] > b[0] else "landscape"
+            return (f"{folder} mixes {'landscape' if turned == 'portrait' else 'portrait'} and {turned} photos "
+                    f"({desc}): the camera was turned for {len(nb)} of them (e.g. {nb[0]}); one capture must be one "
+                    f"orientation: leave those out or rotate them to the others' orientation (not resize)")
+    return f"{folder} mixes image sizes ({desc}); one capture must have one size: split the folder or resize the odd images"
+
+
 class ImageFolderSource(Source):
     def __init__(self, folder: Path, files: list[Path]):
         self.folder = folder
@@ -253,9 +267,7 @@ class ImageFolderSource(Source):
                 raise InputError(f"{p} cannot be read as an image (truncated or damaged); remove or replace it")
             sizes.setdefault(size, []).append(p.name)
         if len(sizes) > 1:
-            desc = "; ".join(f"{w}x{h}: {len(n)} files (e.g. {n[0]})" for (w, h), n in sorted(sizes.items()))
-            raise InputError(f"{folder} mixes image sizes ({desc}); one capture must have one size: "
-                             "split the folder or resize the odd images")
+            raise InputError(mixed_sizes_message(folder, sizes))
         (w, h), = sizes
         fmts = sorted({sniff(p) or "?" for p in files})
         self.info = SourceInfo("images", str(folder), len(files), w, h, names=[p.name for p in files],

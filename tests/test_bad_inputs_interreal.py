@@ -184,6 +184,14 @@ def _mixed(tmp: Path) -> Path:
     return folder
 
 
+def _turned(tmp: Path) -> Path:
+    """Photos of one camera, one of them held the other way (portrait among landscape)."""
+    folder = photos(tmp / "p", 3)
+    h, w = cv2.imread(str(next(folder.iterdir()))).shape[:2]
+    cv2.imwrite(str(folder / "003.png"), textured(3, h, w))  # w x h swapped
+    return folder
+
+
 def _bytes(name: str, data: bytes) -> Callable[[Path], Path]:
     def make(tmp: Path) -> Path:
         (tmp / name).write_bytes(data)
@@ -348,6 +356,8 @@ CASES = [
          ("does not exist",)),
     Case("folder-garbage-png", _frames_from(_garbage_png), 2, ("004.png",)),
     Case("folder-mixed-sizes", _frames_from(_mixed), 2, ("mixes image sizes",)),
+    Case("folder-turned-photo", _frames_from(_turned), 2, ("mixes landscape and portrait photos",
+                                                           "the camera was turned for 1 of them", "not resize")),
     Case("folder-only-text", _frames_from(lambda tmp: [(tmp / "t").mkdir(), (tmp / "t" / "a.txt").write_text("x"),
                                                        tmp / "t"][2]), 2, ("holds no images",)),
     Case("process-labels-broken", _process_labels_broken, 2, ("s.yaml", "not valid YAML")),

@@ -15,7 +15,7 @@ import yaml
 from interreal import atomic
 from interreal.conventions import fid_of_index, frame_name
 from interreal.errors import InputError
-from interreal.masks import propagate
+from interreal.masks import MasksConfig, propagate
 from interreal.paths import require_shared
 
 cv2.setNumThreads(2)
@@ -155,6 +155,58 @@ def test_object_leaves_and_reenters(tmp_path):
     # frames two or more away from the (abrupt) disappearance keep the disk
     ious = mean_iou(ds, truths, [0, 4, 5, 6, 7, 8, 9, 10, 11, 12, 15], 2)
     assert min(ious) > 0.8, ious
+
+
+def pan_out_and_back(n: int = 24, w: int = 128, h: int = 96, seed: int = 3):
+    """The camera pans right until a red box (fixed in the world) leaves the view over the left border, then back:
+    the keyframes at both ends show it."""
+    rng = np.random.default_rng(seed)
+    world_w = w + 160
+    bg = cv2.GaussianBlur(rng.integers(0, 255, (h, world_w, 3), dtype=np.uint8), (0, 0), 2.0)
+    bg = cv2.normalize(bg, None, 60, 200, cv2.NORM_MINMAX)
+    tex = cv2.GaussianBlur(rng.integers(0, 255, (40, 40), dtype=np.uint8), (0, 0), 1.5)
+    world = bg.copy()
+    world[30:70, 20:60] = np.stack([200 + tex // 8, 40 + tex // 6, 40 + tex // 6], -1)
+    lab_world = np.zeros((h, world_w), np.uint8)
+    lab_world[30:70, 20:60] = 1
+    images, truths = [], []
+    for t in range(n):
+        x = int(round(150 * (1 - abs(2 * t / (n - 1) - 1))))  # 0 -> 150 -> 0
+        images.append(world[:, x:x + w].copy())
+        truths.append(lab_world[:, x:x + w].copy())
+    return images, truths
+
+
+def test_an_object_that_leaves_the_view_is_not_lost(tmp_path, capsys):
+    """Both keyframes show the box; between them the camera turned away and it is out of the view: no 'object
+    lost' warning, no keyframe suggested there, the stretch named as out of the view."""
+    import argparse
+
+    from interreal.masks import main as masks_main
+    from interreal.report import read_report
+
+    images, truths = pan_out_and_back()
+    assert not truths[12].any() and truths[0].any() and truths[-1].any()
+    ds = make_ds(tmp_path, images)
+    write_keys(tmp_path / "keys", truths, [0, len(images) - 1], ["red box"])
+    masks_main(argparse.Namespace(dataset=ds, keyframes=tmp_path / "keys", quiet=True,
+                                  **{**dataclasses.asdict(MasksConfig()), "preview": "none", "suggest": 3}))
+    rep = read_report(ds, "masks")
+    assert not [w for w in rep["warnings"] if w.get("cause") == "object-lost"], rep["warnings"]
+    left = rep["figures"]["left_view"]
+    assert list(left) == ["red box"] and fid_of_index(12) in _frames_in(left["red box"])
+    assert "red box: out of the view at frames" in capsys.readouterr().out
+    for t in (10, 12, 14):
+        assert np.load(ds / "masks" / f"{fid_of_index(t)}.npy")[..., 0].sum() == 0
+
+
+def _frames_in(text: str) -> set[str]:
+    """Frame ids in a stretch text like '00008-00015, 00020'."""
+    out = set()
+    for part in text.split(", "):
+        a, _, b = part.partition("-")
+        out |= {fid_of_index(i) for i in range(int(a), int(b or a) + 1)}
+    return out
 
 
 @pytest.mark.slow

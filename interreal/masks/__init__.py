@@ -61,6 +61,8 @@ def main(args: argparse.Namespace) -> int:
         print(f"  {line} -> {args.dataset / 'transients'}")
     for name, frames in (tr.get("occluded") or {}).items():
         print(f"  {name}: hidden behind the person / hand at frames {frames} (occluded, not lost)")
+    for name, frames in (fig.get("left_view") or {}).items():
+        print(f"  {name}: out of the view at frames {frames} (it left over the image border; not lost)")
     for name, frames in (fig.get("redetected") or {}).items():
         if frames:
             print(f"  {name}: found again after its mask collapsed at frames {', '.join(frames[:8])}")

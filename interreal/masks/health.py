@@ -140,6 +140,14 @@ def fine_share(mask: np.ndarray, radius: int) -> float:
     return float(n - int(opened.sum())) / n
 
 
+def touches_border(labels: np.ndarray, n_obj: int, margin: int = 2) -> np.ndarray:
+    """(n_obj,) bool: object k's mask reaches within `margin` px of the image border (it may be leaving the view)."""
+    ring = np.ones(labels.shape, bool)
+    ring[margin:-margin, margin:-margin] = False
+    present = np.unique(labels[ring])
+    return np.isin(np.arange(1, n_obj + 1), present)
+
+
 def centroids(labels: np.ndarray, n_obj: int) -> np.ndarray:
     """(K, 2) centroid of each object in image widths (NaN where absent)."""
     out = np.full((n_obj, 2), np.nan)

@@ -204,6 +204,7 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
         expected = _expected(ref, len(fids))
         hl = H.assess(feats, cues.area, ref_area, expected, is_key)
         occluded = _occluded_by_transients(ds, fids, hl, n_obj) if grey is not None else {}
+        left = _left_view(hl, cues.border, cues.area, n_obj)
         conf = hl.predicted  # the honest confidence: a predicted J, calibrated on real footage
         with rep.step("previews"):
             for group in (tiles, video):
@@ -262,6 +263,8 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
                      f"found hand grew over half the frame (a wall of the skin's colour?); only the hand itself was "
                      f"kept there: check them in `interreal annotate` and paint the arm as ignore where it matters",
                      cause="transient-leak", frames=leaked)
+        # per object: lost stretches that are the object out of the view (it left over the image border)
+        rep.figures["left_view"] = {kf.names[k]: _stretch_text(fids, runs) for k, runs in left.items()}
         rep.figures["transients"]["occluded"] = {kf.names[k]: _stretch_text(fids, runs) for k, runs in occluded.items()}
         # frames where a chain found a collapsed object again from its keyframe's appearance (`redetect`)
         rep.figures["redetected"] = _event_frames(prop.redetections, fids, kf.names)
@@ -323,12 +326,14 @@ class _Cues:
         self.centroid = np.full((n, k, 2), np.nan)
         self.thin = np.zeros((n, k))
         self.moved = np.full((n, k), np.nan)  # area share the object's own motion predicts (one-sided chains)
+        self.border = np.zeros((n, k), bool)  # the mask reaches the image border (`health.touches_border`)
 
     def add(self, res, work: np.ndarray | None, refs: Future) -> None:
         """One frame's cues; `work`: its work-size image (None for a keyframe); `refs`: `_key_refs`. Runs on the
         writer thread."""
         key_refs: dict[int, H.KeyRef] = refs.result()
         pos = res.pos
+        self.border[pos] = H.touches_border(res.labels, self.border.shape[1])
         if res.keyframe:
             self.area[pos], self.centroid[pos], self.thin[pos] = key_refs[pos].area, key_refs[pos].centroid, \
                 key_refs[pos].thin
@@ -407,6 +412,28 @@ def _occluded_by_transients(ds: Path, fids: list[str], hl: H.Health, n_obj: int,
                 ref = max(ok, key=lambda i: cover[i].share)
                 hl.state[a:b + 1, k] = 0
                 hl.predicted[a:b + 1, k] = hl.predicted[ref, k]
+                out.setdefault(k, []).append((a, b))
+            else:
+                kept.append((a, b))
+        hl.stretches["lost"][k] = kept
+    return out
+
+
+def _left_view(hl: H.Health, border: np.ndarray, area: np.ndarray, n_obj: int) -> dict[int, list[tuple[int, int]]]:
+    """Lost stretches that are the object out of the view: its mask beside the stretch (a frame that is not lost)
+    reaches the image border, and inside the stretch it is empty or still at the border, shrinking out. The keyframes
+    around show the object, but the camera turned away between them: an empty mask there is right. Taken out of the
+    lost state (no warning, no suggested keyframe) with confidence 1. Returns object -> the stretches so relabelled."""
+    out: dict[int, list[tuple[int, int]]] = {}
+    lost = H.STATES.index("lost")
+    for k in range(min(n_obj, area.shape[1])):
+        kept = []
+        for a, b in hl.stretches["lost"][k]:
+            beside = [i for i in (a - 1, b + 1) if 0 <= i < len(area) and hl.state[i, k] != lost]
+            inside = range(a, b + 1)
+            if any(border[i, k] for i in beside) and all(area[i, k] <= 0 or border[i, k] for i in inside):
+                hl.state[a:b + 1, k] = 0
+                hl.predicted[a:b + 1, k] = 1.0
                 out.setdefault(k, []).append((a, b))
             else:
                 kept.append((a, b))

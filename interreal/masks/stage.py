@@ -5,7 +5,8 @@ from __future__ import annotations
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -57,8 +58,8 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
     """Propagate keyframe masks to every frame of DS; returns the report's figures.
 
     `opts`: the `MasksConfig` fields (work_long_side, flow, preset, appearance, rigid, fusion, refine, suggest,
-    preview, sfm_dilate; None = the default). `config` (a TrackConfig) overrides the propagation ones (benchmarks
-    use it for the baseline).
+    preview, sfm_dilate, transients; None = the default). `config` (a TrackConfig) overrides the propagation ones
+    (benchmarks use it for the baseline).
 
     Everything the user gave is checked first (InputError, nothing written); then the report is opened
     ("running"), so a crash half-way leaves it "failed" and `interreal validate` refuses the dataset. A finished
@@ -67,251 +68,371 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
     """
     ds = Path(ds)
     opt = config_from(MasksConfig, opts, "masks")
-    suggest, preview, sfm_dilate = opt.suggest, opt.preview, opt.sfm_dilate
+    if opt.preview not in PREVIEW_KINDS:
+        raise InputError(f"--preview {opt.preview!r}: choose one of {PREVIEW_KINDS}")
     # the hand model checked once, first: a run made without it is made again once it is installed
     no_model = model_problem() if opt.transients == "auto" else None
     auto = opt.transients == "auto" and no_model is None
-    if preview not in PREVIEW_KINDS:
-        raise InputError(f"--preview {preview!r}: choose one of {PREVIEW_KINDS}")
     cfg = config or opt.track_config()
     images = dataset_frames(ds)
-    fids = [frame_id(p) for p in images]
     # the mapping file is left out of the key: the first run writes it, which would make every second run look changed
     keys_fp = tree_fingerprint(Path(keyframes_dir))
     key = None if keys_fp is None else fingerprint("masks", str(ds.resolve()), files_fingerprint(images), keys_fp,
-                                                    asdict(cfg), suggest, preview, sfm_dilate, auto)
-    done = finished_with(ds, "masks", key) if key is not None else None
-    if done is not None and all(mask_file(ds, f).exists() for f in fids) \
-            and all((ds / SFM_MASKS_DIR / f"{p.name}.png").exists() for p in images) \
-            and all(transient_file(ds, f).exists() for f in (done["figures"].get("transients") or {}).get("share", {})):
+                                                    asdict(cfg), opt.suggest, opt.preview, opt.sfm_dilate, auto)
+    done = _reusable(ds, images, key)
+    if done is not None:
         if progress:
-            print(f"masks: {len(fids)} frames' masks are up to date (same frames, keyframes and settings)")
-        return done["figures"]
+            print(f"masks: {len(images)} frames' masks are up to date (same frames, keyframes and settings)")
+        return done
     fingerprints = provenance.fingerprints(ds, ["images", "capture"], keyframes=keyframes_dir)  # before any read
-    first = read_image_rgb(images[0])
-    size = (first.shape[1], first.shape[0])
-    ds_mapping = read_mapping(ds)
-    _refuse_duplicate_names(ds / "mapping.yaml", list(ds_mapping.values()))
-    pos_of = {f: i for i, f in enumerate(fids)}
+    job = _Job.open(ds, images, Path(keyframes_dir))
+    inputs = {"keyframes_dir": str(keyframes_dir), "keyframes": job.kf.sources, "frames": len(job.fids),
+              "size": list(job.size), "objects": job.kf.names, "fingerprints": fingerprints}
+    settings = {**asdict(cfg), "suggest": opt.suggest, "preview": opt.preview, "transients": opt.transients}
+    with StageReport(ds, "masks", inputs=inputs, settings=settings, resume_key=key) as rep:
+        rep.steps["keyframes"] = {"wall_s": round(job.keyframes_s, 4)}
+        if not job.ds_mapping:
+            write_mapping(ds, dict(enumerate(job.kf.names)))
+        layer = _auto_layer(rep, job, auto, no_model, progress)
+        dil = opt.sfm_dilate if opt.sfm_dilate is not None else max(2, round(0.006 * float(np.hypot(*job.size))))
+        out = _run_chains(rep, job, cfg, layer, opt.preview, dil, progress)
+        hl, health = _assess(job, out, opt.suggest)
+        with rep.step("previews"):
+            _write_previews(ds, out, hl, job.n_obj)
+        _report(rep, job, out, hl, health, dil)
+        rep.figures["transients"]["auto"] = auto_figures(layer, job.fids, opt.transients, no_model)
+        _warn(rep, job, out, hl, health, layer)
+        return dict(rep.figures)
 
-    def image_of(fid: str) -> np.ndarray:
-        return load(pos_of[fid])
 
-    def load(pos: int) -> np.ndarray:
-        img = read_image_rgb(images[pos])
-        if (img.shape[1], img.shape[0]) != size:
-            raise InputError(f"{images[pos]} is {img.shape[1]}x{img.shape[0]}, other frames are {size[0]}x{size[1]}; "
-                             f"re-run `interreal frames`")
+def _reusable(ds: Path, images: list[Path], key: str | None) -> dict[str, Any] | None:
+    """The figures of a finished run with this key whose files are all still there, else None."""
+    done = finished_with(ds, "masks", key) if key is not None else None
+    if done is None:
+        return None
+    fids = [frame_id(p) for p in images]
+    transients = (done["figures"].get("transients") or {}).get("share", {})
+    if all(mask_file(ds, f).exists() for f in fids) \
+            and all((ds / SFM_MASKS_DIR / f"{p.name}.png").exists() for p in images) \
+            and all(transient_file(ds, f).exists() for f in transients):
+        return done["figures"]
+    return None
+
+
+@dataclass
+class _Job:
+    """One masks run's inputs, checked: the frames (their ids, size, how to read one) and the keyframes."""
+
+    ds: Path
+    images: list[Path]
+    fids: list[str]
+    size: tuple[int, int]  # (w, h)
+    ds_mapping: dict[int, str]
+    kf: Any = None  # `keyframes.Keyframes`
+    keyframes_s: float = 0.0
+
+    @classmethod
+    def open(cls, ds: Path, images: list[Path], keyframes_dir: Path) -> "_Job":
+        first = read_image_rgb(images[0])
+        job = cls(ds, images, [frame_id(p) for p in images], (first.shape[1], first.shape[0]), read_mapping(ds))
+        _refuse_duplicate_names(ds / "mapping.yaml", list(job.ds_mapping.values()))
+        t0 = time.perf_counter()
+        job.kf = load_keyframes(keyframes_dir, job.fids, job.size, job.ds_mapping,
+                                image_of=lambda fid: job.load(job.pos_of[fid]))
+        job.keyframes_s = time.perf_counter() - t0
+        _refuse_duplicate_names(keyframes_dir, list(job.kf.names))
+        return job
+
+    @cached_property
+    def pos_of(self) -> dict[str, int]:
+        return {f: i for i, f in enumerate(self.fids)}
+
+    @property
+    def n_obj(self) -> int:
+        return len(self.kf.names)
+
+    @property
+    def n_track(self) -> int:
+        """Objects the chains track: the painted ignore class (people, hands) is one more, then written to
+        DS/transients/."""
+        return self.n_obj + int(self.kf.has_ignore)
+
+    @cached_property
+    def anchors(self) -> dict[int, np.ndarray]:
+        return {self.pos_of[f]: track_labels(m, self.n_obj) for f, m in self.kf.masks.items()}
+
+    @cached_property
+    def painted(self) -> set[int]:
+        """Keyframe positions that paint the ignore class: what is transient there is what they say."""
+        return {self.pos_of[f] for f, m in self.kf.masks.items() if (m == IGNORE).any()}
+
+    def load(self, pos: int) -> np.ndarray:
+        img = read_image_rgb(self.images[pos])
+        if (img.shape[1], img.shape[0]) != self.size:
+            raise InputError(f"{self.images[pos]} is {img.shape[1]}x{img.shape[0]}, other frames are "
+                             f"{self.size[0]}x{self.size[1]}; re-run `interreal frames`")
         return img
 
-    t0 = time.perf_counter()
-    kf = load_keyframes(keyframes_dir, fids, size, ds_mapping, image_of=image_of)
-    t_kf = time.perf_counter() - t0
-    _refuse_duplicate_names(Path(keyframes_dir), list(kf.names))
-    n_obj = len(kf.names)
-    # the painted ignore class (people, hands) is tracked as one more object, then written to DS/transients/
-    n_track = n_obj + int(kf.has_ignore)
-    anchors = {pos_of[f]: track_labels(m, n_obj) for f, m in kf.masks.items()}
-    inputs = {"keyframes_dir": str(keyframes_dir), "keyframes": kf.sources, "frames": len(fids),
-              "size": list(size), "objects": kf.names, "fingerprints": fingerprints}
-    settings = {**asdict(cfg), "suggest": suggest, "preview": preview, "transients": opt.transients}
-    with StageReport(ds, "masks", inputs=inputs, settings=settings, resume_key=key) as rep:
-        rep.steps["keyframes"] = {"wall_s": round(t_kf, 4)}
-        if not ds_mapping:
-            write_mapping(ds, dict(enumerate(kf.names)))
-        dil = sfm_dilate if sfm_dilate is not None else max(2, round(0.006 * float(np.hypot(*size))))
-        layer = None
-        if auto:
-            with rep.step("transients_auto") as st:
-                layer = propose(load, len(fids), size, progress=progress)
-                st.update(layer.seconds)
-        elif no_model:
-            rep.warn(f"no automatic transient layer: {no_model}; or paint the hand / person as `ignore` on the "
-                     f"keyframes", cause="no-hand-model")
-            if progress:
-                print(f"masks: no automatic transient layer: {no_model}")
-        prop = Propagator(load, len(fids), size, n_track, cfg)
-        ref = {p: np.array([(m == k + 1).mean() for k in range(n_track)]) for p, m in anchors.items()}
-        fine_r = H.fine_radius(size[0], prop.wsize[0])
-        cues = _Cues(len(fids), n_track)
-        clear_transients(ds)  # this run's ignore class (or none) replaces any earlier transient layer
-        transient_share = np.zeros(len(fids))
-        painted = {pos_of[f] for f, m in kf.masks.items() if (m == IGNORE).any()}
-        # previews draw the ignore class grey
-        grey = n_obj + 1 if n_track > n_obj or (layer is not None and layer.masks) else None
-        sheet_pos = set(np.linspace(0, len(fids) - 1, min(len(fids), 24)).round().astype(int).tolist())
-        tiles: dict[int, np.ndarray] = {}
-        vid_w = min(480, size[0])
-        video: dict[int, np.ndarray] = {}
-        t_write = 0.0
-        with rep.step("propagate") as info:
-            t_start, c_start, c_write = time.perf_counter(), time.process_time(), 0.0
-            bar = tqdm(total=len(fids), desc="masks", unit="frame", disable=not progress)
-            # files are written on a thread of their own: encoding and syncing them overlaps the chains
-            with ThreadPoolExecutor(1, thread_name_prefix="write") as writer:
-                # what health compares each frame with, made on the writer (first in its queue, so ready for every
-                # frame's cues) while the chains start: a decode and a colour fit per keyframe, off their path
-                key_refs = writer.submit(_key_refs, anchors, load, prop.wsize, n_track)
-                fine_shares = writer.submit(_fine_shares, anchors, n_obj, fine_r)
-                pending: deque[Future] = deque()
-                for res in prop.run(anchors):
-                    tw, cw = time.perf_counter(), time.process_time()
-                    # a keyframe that paints the ignore class says what is transient there: no proposal over it
-                    labels = with_auto(res.labels, None if res.pos in painted else layer, res.pos, n_obj)
-                    transient_share[res.pos] = (labels == n_obj + 1).mean() if grey is not None else 0.0
-                    pending.append(writer.submit(_write_frame, ds, fids[res.pos], images[res.pos].name,
-                                                 labels, n_obj, dil))
-                    while pending and pending[0].done():
-                        pending.popleft().result()  # a failed write stops the stage here, not at the end
-                    # the cues and the preview tiles go to the writer too: the chains' thread is the one the
-                    # others wait for (first frame only: 10 % of its time was these)
-                    work = None if res.keyframe else prop.cache.work(res.pos)
-                    pending.append(writer.submit(cues.add, res, work, key_refs))
-                    if preview != "none":
-                        full = prop.cache.peek(res.pos)
-                        cap = f"{fids[res.pos]}{' key' if res.keyframe else ''}"
-                        if preview in ("sheet", "both") and res.pos in sheet_pos:
-                            pending.append(writer.submit(_tile, tiles, res.pos, full, load, labels, 240, cap,
-                                                         grey))
-                        if preview in ("video", "both"):
-                            # the work image is the video's size (WORK_LONG_SIDE = vid_w): no resize of the full one
-                            src = work if work is not None and work.shape[1] == vid_w else full
-                            pending.append(writer.submit(_tile, video, res.pos, src, load, labels, vid_w, cap,
-                                                         grey))
-                    t_write += time.perf_counter() - tw
-                    c_write += time.process_time() - cw
-                    bar.update(1)
-                bar.close()
-                tw = time.perf_counter()
-                for done in pending:
-                    done.result()
-                fine, fine_key = fine_shares.result()
+
+def _auto_layer(rep: StageReport, job: _Job, auto: bool, no_model: str | None, progress: bool) -> AutoLayer | None:
+    """`--transients auto`'s layer, or the one line on why there is none."""
+    if auto:
+        with rep.step("transients_auto") as st:
+            layer = propose(job.load, len(job.fids), job.size, progress=progress)
+            st.update(layer.seconds)
+        return layer
+    if no_model:
+        rep.warn(f"no automatic transient layer: {no_model}; or paint the hand / person as `ignore` on the "
+                 f"keyframes", cause="no-hand-model")
+        if progress:
+            print(f"masks: no automatic transient layer: {no_model}")
+    return None
+
+
+@dataclass
+class _Chains:
+    """What the propagation pass leaves: the tracker, the per-frame cues and transient shares, the preview tiles, the
+    fine-part shares of the keyframes and the pass's speed."""
+
+    prop: Propagator
+    cues: "_Cues"
+    transient_share: np.ndarray
+    grey: int | None  # the ignore class's index in the tracked labels when there is a transient layer (drawn grey)
+    ref: dict[int, np.ndarray]  # keyframe position -> each tracked class's area share there
+    fine_r: int
+    tiles: dict[int, np.ndarray] = field(default_factory=dict)
+    video: dict[int, np.ndarray] = field(default_factory=dict)
+    fine: np.ndarray | None = None
+    fine_key: list | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def _run_chains(rep: StageReport, job: _Job, cfg: TrackConfig, layer: AutoLayer | None, preview: str, dil: int,
+                progress: bool) -> _Chains:
+    """Every frame's labels from the chains, written (masks, transients, SfM masks) on a thread of their own while
+    the chains run, with the cues health needs and the preview tiles."""
+    n_obj, fids = job.n_obj, job.fids
+    prop = Propagator(job.load, len(fids), job.size, job.n_track, cfg)
+    out = _Chains(prop, _Cues(len(fids), job.n_track), np.zeros(len(fids)),
+                  n_obj + 1 if job.n_track > n_obj or (layer is not None and layer.masks) else None,
+                  {p: np.array([(m == k + 1).mean() for k in range(job.n_track)]) for p, m in job.anchors.items()},
+                  H.fine_radius(job.size[0], prop.wsize[0]))
+    clear_transients(job.ds)  # this run's ignore class (or none) replaces any earlier transient layer
+    sheet_pos = set(np.linspace(0, len(fids) - 1, min(len(fids), 24)).round().astype(int).tolist())
+    vid_w = min(480, job.size[0])
+    t_write = 0.0
+    with rep.step("propagate") as info:
+        t_start, c_start, c_write = time.perf_counter(), time.process_time(), 0.0
+        bar = tqdm(total=len(fids), desc="masks", unit="frame", disable=not progress)
+        # files are written on a thread of their own: encoding and syncing them overlaps the chains
+        with ThreadPoolExecutor(1, thread_name_prefix="write") as writer:
+            # what health compares each frame with, made on the writer (first in its queue, so ready for every
+            # frame's cues) while the chains start: a decode and a colour fit per keyframe, off their path
+            key_refs = writer.submit(_key_refs, job.anchors, job.load, prop.wsize, job.n_track)
+            fine_shares = writer.submit(_fine_shares, job.anchors, n_obj, out.fine_r)
+            pending: deque[Future] = deque()
+            for res in prop.run(job.anchors):
+                tw, cw = time.perf_counter(), time.process_time()
+                # a keyframe that paints the ignore class says what is transient there: no proposal over it
+                labels = with_auto(res.labels, None if res.pos in job.painted else layer, res.pos, n_obj)
+                out.transient_share[res.pos] = (labels == n_obj + 1).mean() if out.grey is not None else 0.0
+                pending.append(writer.submit(_write_frame, job.ds, fids[res.pos], job.images[res.pos].name,
+                                             labels, n_obj, dil))
+                while pending and pending[0].done():
+                    pending.popleft().result()  # a failed write stops the stage here, not at the end
+                # the cues and the preview tiles go to the writer too: the chains' thread is the one the
+                # others wait for (first frame only: 10 % of its time was these)
+                work = None if res.keyframe else prop.cache.work(res.pos)
+                pending.append(writer.submit(out.cues.add, res, work, key_refs))
+                if preview != "none":
+                    full = prop.cache.peek(res.pos)
+                    cap = f"{fids[res.pos]}{' key' if res.keyframe else ''}"
+                    if preview in ("sheet", "both") and res.pos in sheet_pos:
+                        pending.append(writer.submit(_tile, out.tiles, res.pos, full, job.load, labels, 240, cap,
+                                                     out.grey))
+                    if preview in ("video", "both"):
+                        # the work image is the video's size (WORK_LONG_SIDE = vid_w): no resize of the full one
+                        src = work if work is not None and work.shape[1] == vid_w else full
+                        pending.append(writer.submit(_tile, out.video, res.pos, src, job.load, labels, vid_w, cap,
+                                                     out.grey))
                 t_write += time.perf_counter() - tw
-            compute = time.perf_counter() - t_start - t_write
-            cpu = time.process_time() - c_start - c_write
-            # fps: wall clock (slowed by whatever else runs); cpu_fps: frames per CPU-second over all threads,
-            # i.e. what one dedicated core would do, a contention-free floor for the 2-core figure
-            info.update(frames=len(fids), flow_pairs=prop.flow_pairs, compute_s=round(compute, 3),
-                        write_s=round(t_write, 3), fps=round(len(fids) / max(compute, 1e-9), 2),
-                        cpu_s=round(cpu, 3), cpu_fps=round(len(fids) / max(cpu, 1e-9), 2))
-        is_key = np.zeros(len(fids), bool)
-        is_key[list(anchors)] = True
-        motion = np.array([prop.motion.get(t, 0.0) for t in range(len(fids) - 1)])
-        keys = sorted(anchors)
-        ref_area = np.stack([_ref_area(ref, i) for i in range(len(fids))])
-        feats = H.build_features(cues.area, ref_area, cues.appearance, cues.edges, cues.trust, cues.agree,
-                                 cues.centroid, H.reach_per_frame(motion, keys, len(fids)), cues.thin, cues.moved)
-        expected = _expected(ref, len(fids))
-        hl = H.assess(feats, cues.area, ref_area, expected, is_key)
-        occluded = _occluded_by_transients(ds, fids, hl, n_obj) if grey is not None else {}
-        left = _left_view(hl, cues.border, cues.area, n_obj)
-        conf = hl.predicted  # the honest confidence: a predicted J, calibrated on real footage
-        with rep.step("previews"):
-            for group in (tiles, video):
-                for p, tile in group.items():
-                    worst = int(hl.state[p, :n_obj].max()) if n_obj else 0
-                    text = f"c={conf[p, :n_obj].min():.2f}" + (f" {H.STATES[worst]}" if worst else "") if n_obj else ""
-                    second_line(tile, text, alert=worst > 0)
-            prev_dir = ds / PREVIEWS_DIR
-            if tiles:
-                contact_sheet(prev_dir / "masks_sheet.png", [tiles[p] for p in sorted(tiles)])
-            if video:
-                first_v = video[min(video)]
-                with VideoWriter(prev_dir / "masks_overlay.mp4", first_v.shape[1], first_v.shape[0], fps=15,
-                                 crf=28) as vw:
-                    for p in sorted(video):
-                        vw.write(video[p])
-        reach = keyframe_reach(motion, keys) if len(fids) > 1 else []
-        far = sorted((x for x in reach if x[2] > MAX_REACH), key=lambda x: -x[2])
-        # where a mask collapsed (and was found again, or a look-alike of it was refused) the stage could not hold the
-        # object either: after the lost stretches, the first frames to annotate
-        collapsed = [[(e.since, e.pos) for e in prop.redetections + prop.refusals if e.obj == k] for k in range(n_obj)]
-        picks = next_keyframes(conf[:, :n_obj], is_key, suggest,
-                               [lost + col for lost, col in zip(hl.stretches["lost"][:n_obj], collapsed)],
-                               [reach_suggestion(motion, a, b, keys) for a, b, _ in far[:3]])
-        mean_pred = hl.mean_predicted(is_key)
-        rep.figures.update({
-            "frames": len(fids), "keyframes": sorted(kf.masks), "objects": kf.names,
-            "fps": info["fps"], "cpu_fps": info["cpu_fps"],
-            "confidence": {n: {fids[i]: round(float(conf[i, k]), 4) for i in range(len(fids))} for k, n in enumerate(kf.names)},
-            "area_fraction": {n: {fids[i]: round(float(cues.area[i, k]), 5) for i in range(len(fids))} for k, n in enumerate(kf.names)},
-            "confidence_mean": {n: round(float(mean_pred[k]), 4) for k, n in enumerate(kf.names)},
-            "confidence_min": {n: round(float(conf[:, k].min()), 4) for k, n in enumerate(kf.names)},
-            "suggested_frames": [fids[i] for i in picks],
-            "sfm_dilate_px": dil,
-            # per object: predicted J over the propagated frames and the stretches in each state (frame ranges)
-            "health": {n: {"predicted_j": round(float(mean_pred[k]), 4),
-                           **{st: _stretch_text(fids, runs[k]) for st, runs in hl.stretches.items()}}
-                       for k, n in enumerate(kf.names)},
-            "states": {n: {fids[i]: H.STATES[hl.state[i, k]] for i in range(len(fids)) if hl.state[i, k]}
-                       for k, n in enumerate(kf.names)},
-            # the cues behind the predicted J, per object and frame (recipes/bench_masks.py calibrates on them)
-            "cues": {n: {**{f: [round(float(v), 4) for v in feats[:, k, j]] for j, f in enumerate(H.FEATURES)},
-                         "area_share": [round(float(v), 6) for v in cues.area[:, k]],
-                         "ref_share": [round(float(v), 6) for v in ref_area[:, k]],
-                         "expected": [bool(v) for v in expected[:, k]]} for k, n in enumerate(kf.names)},
-        })
-        rep.figures["transients"] = {
-            "ignore_keyframes": sorted(f for f, m in kf.masks.items() if (m == IGNORE).any()),
-            "frames": int((transient_share > 0).sum()), "mean_share": round(float(transient_share.mean()), 5),
-            "max_share": round(float(transient_share.max(initial=0.0)), 5),
-            "share": {fids[i]: round(float(v), 5) for i, v in enumerate(transient_share) if v > 0}}
-        rep.figures["transients"]["auto"] = auto_figures(layer, fids, opt.transients, no_model)
-        if layer is not None and layer.leaked:
-            leaked = [fids[p] for p in layer.leaked]
-            rep.warn(f"transients auto: at frames {', '.join(leaked[:8])}{' ...' if len(leaked) > 8 else ''} the "
-                     f"found hand grew over half the frame (a wall of the skin's colour?); only the hand itself was "
-                     f"kept there: check them in `interreal annotate` and paint the arm as ignore where it matters",
-                     cause="transient-leak", frames=leaked)
-        # per object: lost stretches that are the object out of the view (it left over the image border)
-        rep.figures["left_view"] = {kf.names[k]: _stretch_text(fids, runs) for k, runs in left.items()}
-        rep.figures["transients"]["occluded"] = {kf.names[k]: _stretch_text(fids, runs) for k, runs in occluded.items()}
-        # frames where a chain found a collapsed object again from its keyframe's appearance (`redetect`)
-        rep.figures["redetected"] = _event_frames(prop.redetections, fids, kf.names)
-        # ... and where a region of its colours was not taken for it: it moved with the background, the object not
-        rep.figures["redetect_refused"] = _event_frames(prop.refusals, fids, kf.names)
-        # per object: the share of its keyframe masks in parts too fine for propagation to carry (`health.fine_share`)
-        # and the keyframe with most of them (where the annotate app shows the warning)
-        rep.figures["fine_parts"] = {"width_px": 2 * fine_r + 1,
-                                     "share": {n: round(float(fine[k]), 4) for k, n in enumerate(kf.names)},
-                                     "keyframe": {n: fids[fine_key[k]] for k, n in enumerate(kf.names)
-                                                  if fine_key[k] is not None}}
-        rep.figures["keyframe_reach"] = [{"first": fids[a], "last": fids[b], "reach": round(r, 4)} for a, b, r in reach]
-        rep.figures["max_keyframe_reach"] = round(max((r for _, _, r in reach), default=0.0), 4)
-        for k, n in enumerate(kf.names):
-            lost = hl.stretches["lost"][k]
-            if lost:
-                where = _stretch_text(fids, lost)
-                rep.warn(f"'{n}': object lost at frames {where}: its mask vanished or collapsed where the keyframes "
-                         f"show it; add a keyframe at {', '.join(fids[a] for a, _ in lost[:5])}",
-                         cause="object-lost", object=n, frames=[fids[i] for a, b in lost for i in range(a, b + 1)])
-            fine_note = (f"{100 * fine[k]:.0f} % of its keyframe masks are parts narrower than {2 * fine_r + 1} px "
-                         f"(lines, cables, thin rods), which propagation leaves out between keyframes"
-                         if fine[k] >= H.FINE_WARN else "")
-            if fine_note:
-                rep.warn(f"'{n}': {fine_note}: its masks there can reach J {1 - fine[k]:.2f} at most. Leave such parts "
-                         f"out of its keyframes if the object need not include them; a finer --work-size keeps a "
-                         f"little more of them", cause="masks-fine-parts", object=n)
-            if mean_pred[k] >= H.WARN_J:
-                continue
-            why = [f"{st} at frames {_stretch_text(fids, hl.stretches[st][k])}"
-                   for st in ("lost", "jumped", "drifting") if hl.stretches[st][k]]
-            if rep.figures["redetected"][n]:
-                why.append(f"its mask collapsed and the object was found again by its keyframe's appearance at frames "
-                           f"{_ranges(rep.figures['redetected'][n])}")
-            if rep.figures["redetect_refused"][n]:
-                why.append(f"its mask collapsed and a region of its colours that moved with the background was not "
-                           f"taken for it at frames {_ranges(rep.figures['redetect_refused'][n])}")
-            if fine_note:
-                why.append(fine_note)
-            if far:
-                why.append("the view moves up to " + ", ".join(f"{100 * r:.0f} %" for _, _, r in far[:1])
-                           + f" of its width from the nearest keyframe (propagation holds to about {100 * MAX_REACH:.0f} %)")
-            add = sorted({fids[i] for i in picks[:8]} or {fids[reach_suggestion(motion, a, b, keys)] for a, b, _ in far[:3]})
-            rep.warn(f"'{n}': masks are unreliable (predicted J {mean_pred[k]:.2f}, under {H.WARN_J}): "
-                     f"{'; '.join(why) or 'low confidence throughout'}; add keyframes at {', '.join(add[:8])}",
-                     cause="masks-unreliable", object=n)
-        return dict(rep.figures)
+                c_write += time.process_time() - cw
+                bar.update(1)
+            bar.close()
+            tw = time.perf_counter()
+            for done in pending:
+                done.result()
+            out.fine, out.fine_key = fine_shares.result()
+            t_write += time.perf_counter() - tw
+        compute = time.perf_counter() - t_start - t_write
+        cpu = time.process_time() - c_start - c_write
+        # fps: wall clock (slowed by whatever else runs); cpu_fps: frames per CPU-second over all threads,
+        # i.e. what one dedicated core would do, a contention-free floor for the 2-core figure
+        info.update(frames=len(fids), flow_pairs=prop.flow_pairs, compute_s=round(compute, 3),
+                    write_s=round(t_write, 3), fps=round(len(fids) / max(compute, 1e-9), 2),
+                    cpu_s=round(cpu, 3), cpu_fps=round(len(fids) / max(cpu, 1e-9), 2))
+        out.info = dict(info)
+    return out
+
+
+@dataclass
+class _Health:
+    """Health's verdict beyond `health.Health`: the cues, what each frame should show, where keyframes are, the view
+    motion, the stretches relabelled occluded / out of view, and where to annotate next."""
+
+    feats: np.ndarray
+    ref_area: np.ndarray
+    expected: np.ndarray
+    is_key: np.ndarray
+    motion: np.ndarray
+    occluded: dict[int, list[tuple[int, int]]]
+    left: dict[int, list[tuple[int, int]]]
+    reach: list[tuple[int, int, float]]
+    far: list[tuple[int, int, float]]
+    picks: list[int]
+    mean_pred: np.ndarray
+
+
+def _assess(job: _Job, out: _Chains, suggest: int) -> tuple[H.Health, _Health]:
+    """Each frame's state and predicted J per object, the stretches that are occluded or out of the view rather
+    than lost, and the frames to annotate next."""
+    n, n_obj, cues = len(job.fids), job.n_obj, out.cues
+    is_key = np.zeros(n, bool)
+    is_key[list(job.anchors)] = True
+    motion = np.array([out.prop.motion.get(t, 0.0) for t in range(n - 1)])
+    keys = sorted(job.anchors)
+    ref_area = np.stack([_ref_area(out.ref, i) for i in range(n)])
+    feats = H.build_features(cues.area, ref_area, cues.appearance, cues.edges, cues.trust, cues.agree,
+                             cues.centroid, H.reach_per_frame(motion, keys, n), cues.thin, cues.moved)
+    expected = _expected(out.ref, n)
+    hl = H.assess(feats, cues.area, ref_area, expected, is_key)
+    occluded = _occluded_by_transients(job.ds, job.fids, hl, n_obj) if out.grey is not None else {}
+    left = _left_view(hl, cues.border, cues.area, n_obj)
+    reach = keyframe_reach(motion, keys) if n > 1 else []
+    far = sorted((x for x in reach if x[2] > MAX_REACH), key=lambda x: -x[2])
+    # where a mask collapsed (and was found again, or a look-alike of it was refused) the stage could not hold the
+    # object either: after the lost stretches, the first frames to annotate
+    prop = out.prop
+    collapsed = [[(e.since, e.pos) for e in prop.redetections + prop.refusals if e.obj == k] for k in range(n_obj)]
+    picks = next_keyframes(hl.predicted[:, :n_obj], is_key, suggest,
+                           [lost + col for lost, col in zip(hl.stretches["lost"][:n_obj], collapsed)],
+                           [reach_suggestion(motion, a, b, keys) for a, b, _ in far[:3]])
+    return hl, _Health(feats, ref_area, expected, is_key, motion, occluded, left, reach, far, picks,
+                       hl.mean_predicted(is_key))
+
+
+def _write_previews(ds: Path, out: _Chains, hl: H.Health, n_obj: int) -> None:
+    """The contact sheet and the overlay video, each tile captioned with its confidence and worst state."""
+    conf = hl.predicted  # the honest confidence: a predicted J, calibrated on real footage
+    for group in (out.tiles, out.video):
+        for p, tile in group.items():
+            worst = int(hl.state[p, :n_obj].max()) if n_obj else 0
+            text = f"c={conf[p, :n_obj].min():.2f}" + (f" {H.STATES[worst]}" if worst else "") if n_obj else ""
+            second_line(tile, text, alert=worst > 0)
+    prev_dir = ds / PREVIEWS_DIR
+    if out.tiles:
+        contact_sheet(prev_dir / "masks_sheet.png", [out.tiles[p] for p in sorted(out.tiles)])
+    if out.video:
+        first_v = out.video[min(out.video)]
+        with VideoWriter(prev_dir / "masks_overlay.mp4", first_v.shape[1], first_v.shape[0], fps=15, crf=28) as vw:
+            for p in sorted(out.video):
+                vw.write(out.video[p])
+
+
+def _report(rep: StageReport, job: _Job, out: _Chains, hl: H.Health, h: _Health, dil: int) -> None:
+    """The report's figures (see docs/interfaces.md, Masks)."""
+    fids, names, cues, conf = job.fids, job.kf.names, out.cues, hl.predicted
+    n = len(fids)
+    rep.figures.update({
+        "frames": n, "keyframes": sorted(job.kf.masks), "objects": names,
+        "fps": out.info["fps"], "cpu_fps": out.info["cpu_fps"],
+        "confidence": {nm: {fids[i]: round(float(conf[i, k]), 4) for i in range(n)} for k, nm in enumerate(names)},
+        "area_fraction": {nm: {fids[i]: round(float(cues.area[i, k]), 5) for i in range(n)}
+                          for k, nm in enumerate(names)},
+        "confidence_mean": {nm: round(float(h.mean_pred[k]), 4) for k, nm in enumerate(names)},
+        "confidence_min": {nm: round(float(conf[:, k].min()), 4) for k, nm in enumerate(names)},
+        "suggested_frames": [fids[i] for i in h.picks],
+        "sfm_dilate_px": dil,
+        # per object: predicted J over the propagated frames and the stretches in each state (frame ranges)
+        "health": {nm: {"predicted_j": round(float(h.mean_pred[k]), 4),
+                        **{st: _stretch_text(fids, runs[k]) for st, runs in hl.stretches.items()}}
+                   for k, nm in enumerate(names)},
+        "states": {nm: {fids[i]: H.STATES[hl.state[i, k]] for i in range(n) if hl.state[i, k]}
+                   for k, nm in enumerate(names)},
+        # the cues behind the predicted J, per object and frame (recipes/bench_masks.py calibrates on them)
+        "cues": {nm: {**{f: [round(float(v), 4) for v in h.feats[:, k, j]] for j, f in enumerate(H.FEATURES)},
+                      "area_share": [round(float(v), 6) for v in cues.area[:, k]],
+                      "ref_share": [round(float(v), 6) for v in h.ref_area[:, k]],
+                      "expected": [bool(v) for v in h.expected[:, k]]} for k, nm in enumerate(names)},
+    })
+    share = out.transient_share
+    rep.figures["transients"] = {
+        "ignore_keyframes": sorted(f for f, m in job.kf.masks.items() if (m == IGNORE).any()),
+        "frames": int((share > 0).sum()), "mean_share": round(float(share.mean()), 5),
+        "max_share": round(float(share.max(initial=0.0)), 5),
+        "share": {fids[i]: round(float(v), 5) for i, v in enumerate(share) if v > 0},
+        "occluded": {names[k]: _stretch_text(fids, runs) for k, runs in h.occluded.items()}}
+    # per object: lost stretches that are the object out of the view (it left over the image border)
+    rep.figures["left_view"] = {names[k]: _stretch_text(fids, runs) for k, runs in h.left.items()}
+    # frames where a chain found a collapsed object again from its keyframe's appearance (`redetect`)
+    rep.figures["redetected"] = _event_frames(out.prop.redetections, fids, names)
+    # ... and where a region of its colours was not taken for it: it moved with the background, the object not
+    rep.figures["redetect_refused"] = _event_frames(out.prop.refusals, fids, names)
+    # per object: the share of its keyframe masks in parts too fine for propagation to carry (`health.fine_share`)
+    # and the keyframe with most of them (where the annotate app shows the warning)
+    rep.figures["fine_parts"] = {"width_px": 2 * out.fine_r + 1,
+                                 "share": {nm: round(float(out.fine[k]), 4) for k, nm in enumerate(names)},
+                                 "keyframe": {nm: fids[out.fine_key[k]] for k, nm in enumerate(names)
+                                              if out.fine_key[k] is not None}}
+    rep.figures["keyframe_reach"] = [{"first": fids[a], "last": fids[b], "reach": round(r, 4)} for a, b, r in h.reach]
+    rep.figures["max_keyframe_reach"] = round(max((r for _, _, r in h.reach), default=0.0), 4)
+
+
+def _warn(rep: StageReport, job: _Job, out: _Chains, hl: H.Health, h: _Health, layer: AutoLayer | None) -> None:
+    """The stage's warnings: a leaking auto layer, and per object lost stretches, fine parts, unreliable masks."""
+    fids = job.fids
+    if layer is not None and layer.leaked:
+        leaked = [fids[p] for p in layer.leaked]
+        rep.warn(f"transients auto: at frames {', '.join(leaked[:8])}{' ...' if len(leaked) > 8 else ''} the "
+                 f"found hand grew over half the frame (a wall of the skin's colour?); only the hand itself was "
+                 f"kept there: check them in `interreal annotate` and paint the arm as ignore where it matters",
+                 cause="transient-leak", frames=leaked)
+    keys = sorted(job.anchors)
+    fine, fine_r = out.fine, out.fine_r
+    for k, n in enumerate(job.kf.names):
+        lost = hl.stretches["lost"][k]
+        if lost:
+            where = _stretch_text(fids, lost)
+            rep.warn(f"'{n}': object lost at frames {where}: its mask vanished or collapsed where the keyframes "
+                     f"show it; add a keyframe at {', '.join(fids[a] for a, _ in lost[:5])}",
+                     cause="object-lost", object=n, frames=[fids[i] for a, b in lost for i in range(a, b + 1)])
+        fine_note = (f"{100 * fine[k]:.0f} % of its keyframe masks are parts narrower than {2 * fine_r + 1} px "
+                     f"(lines, cables, thin rods), which propagation leaves out between keyframes"
+                     if fine[k] >= H.FINE_WARN else "")
+        if fine_note:
+            rep.warn(f"'{n}': {fine_note}: its masks there can reach J {1 - fine[k]:.2f} at most. Leave such parts "
+                     f"out of its keyframes if the object need not include them; a finer --work-size keeps a "
+                     f"little more of them", cause="masks-fine-parts", object=n)
+        if h.mean_pred[k] >= H.WARN_J:
+            continue
+        why = [f"{st} at frames {_stretch_text(fids, hl.stretches[st][k])}"
+               for st in ("lost", "jumped", "drifting") if hl.stretches[st][k]]
+        if rep.figures["redetected"][n]:
+            why.append(f"its mask collapsed and the object was found again by its keyframe's appearance at frames "
+                       f"{_ranges(rep.figures['redetected'][n])}")
+        if rep.figures["redetect_refused"][n]:
+            why.append(f"its mask collapsed and a region of its colours that moved with the background was not "
+                       f"taken for it at frames {_ranges(rep.figures['redetect_refused'][n])}")
+        if fine_note:
+            why.append(fine_note)
+        if h.far:
+            why.append("the view moves up to " + ", ".join(f"{100 * r:.0f} %" for _, _, r in h.far[:1])
+                       + f" of its width from the nearest keyframe (propagation holds to about {100 * MAX_REACH:.0f} %)")
+        add = sorted({fids[i] for i in h.picks[:8]}
+                     or {fids[reach_suggestion(h.motion, a, b, keys)] for a, b, _ in h.far[:3]})
+        rep.warn(f"'{n}': masks are unreliable (predicted J {h.mean_pred[k]:.2f}, under {H.WARN_J}): "
+                 f"{'; '.join(why) or 'low confidence throughout'}; add keyframes at {', '.join(add[:8])}",
+                 cause="masks-unreliable", object=n)
 
 
 class _Cues:

@@ -414,13 +414,13 @@ def test_scores_leave_transient_pixels_out(tiny):
 
 
 def test_a_sliver_left_uncovered_beside_a_lost_stretch_is_occlusion_not_loss(tmp_path):
-    """`stage._occluded_by_transients` on hand-made masks: the object shows only a sliver on the frame before the
+    """`verdict.occluded_by_transients` on hand-made masks: the object shows only a sliver on the frame before the
     stretch (the person already hides the rest) and all of itself after it (the person gone). Part of the sliver is
     uncovered again during the stretch, so neither side's mask is 70 % shown or hidden; but what is left unexplained
     is under `health.LOST_AREA` of the object's size beside the stretch: occluded. The same stretch with the person
     moved off the object stays lost."""
     from interreal.masks import health as H
-    from interreal.masks.stage import _occluded_by_transients
+    from interreal.masks.verdict import occluded_by_transients as _occluded_by_transients
     from interreal.transients import write_transient
 
     h, w, n = 60, 80, 5

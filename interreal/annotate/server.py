@@ -177,9 +177,7 @@ def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1",
                max_request_mb: float = DEFAULT_MAX_REQUEST_MB):
     """The ASGI app for one dataset, one token and the port it is served on."""
     _require_web()
-    from fastapi import Depends, FastAPI, HTTPException, Request
-    from fastapi.exceptions import RequestValidationError
-    from fastapi.responses import HTMLResponse, JSONResponse, Response
+    from fastapi import FastAPI
 
     if not (isinstance(max_request_mb, (int, float)) and math.isfinite(max_request_mb) and max_request_mb > 0):
         raise InputError(f"--max-request-mb {max_request_mb}: give a positive size in MiB, e.g. 4")
@@ -189,6 +187,28 @@ def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1",
     cookie = f"interreal_token_{port}"
     app = FastAPI(title="interreal annotate", docs_url=None, redoc_url=None, openapi_url=None)
     app.state.store, app.state.propagation, app.state.token = store, prop, token
+    _error_handlers(app)
+    _page_routes(app, store, token, cookie)
+    _read_routes(app, store, prop)
+    _edit_routes(app, store, prop)
+    return LocalGuard(app, token, allowed_hosts(host, port), cookie, max_body=int(max_request_mb * MiB),
+                      token_header=TOKEN_HEADER, command="interreal annotate", limit_flag="--max-request-mb")
+
+
+NOCACHE = {"Cache-Control": "no-store"}
+PAGE_HEADERS = {
+    **NOCACHE, "X-Frame-Options": "DENY", "X-Content-Type-Options": "nosniff", "Referrer-Policy": "no-referrer",
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; script-src 'self'; style-src 'self'; "
+                               "connect-src 'self'; frame-ancestors 'none'; base-uri 'none'",
+}
+
+
+def _error_handlers(app) -> None:
+    """Every error as one JSON line: 409 a conflicting edit, 400 bad input, 404 no such frame, 403 outside the
+    dataset, 500 a bug (its traceback on the server's terminal)."""
+    from fastapi import Request
+    from fastapi.exceptions import RequestValidationError
+    from fastapi.responses import JSONResponse
 
     @app.exception_handler(Conflict)
     async def _conflict(_req: Request, exc: Conflict):
@@ -216,17 +236,16 @@ def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1",
         return JSONResponse({"error": f"internal error in the annotation server ({type(exc).__name__}); the "
                                       f"details are on its terminal: please report it"}, status_code=500)
 
-    nocache = {"Cache-Control": "no-store"}
-    page_headers = {
-        **nocache, "X-Frame-Options": "DENY", "X-Content-Type-Options": "nosniff", "Referrer-Policy": "no-referrer",
-        "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; script-src 'self'; style-src 'self'; "
-                                   "connect-src 'self'; frame-ancestors 'none'; base-uri 'none'",
-    }
+
+def _page_routes(app, store: DatasetStore, token: str, cookie: str) -> None:
+    """The page (it sets the token cookie) and its static files."""
+    from fastapi import HTTPException
+    from fastapi.responses import HTMLResponse, Response
 
     @app.get("/", response_class=HTMLResponse)
     def index():
         html = (STATIC_DIR / "index.html").read_text(encoding="utf-8").replace("{{DATASET}}", _html(store.ds.name))
-        resp = HTMLResponse(html, headers=page_headers)
+        resp = HTMLResponse(html, headers=PAGE_HEADERS)
         resp.set_cookie(cookie, token, httponly=True, samesite="strict", path="/")
         return resp
 
@@ -234,27 +253,40 @@ def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1",
     def static(name: str):
         if name not in STATIC_FILES:
             raise HTTPException(404)
-        return Response((STATIC_DIR / name).read_bytes(), media_type=STATIC_FILES[name], headers=nocache)
+        return Response((STATIC_DIR / name).read_bytes(), media_type=STATIC_FILES[name], headers=NOCACHE)
 
-    def state() -> dict[str, Any]:
-        store.refresh_frames()
-        mapping, mversion = store.objects()
-        labels, lversion, bad_labels = store.labels()
 
-        return {
-            "dataset": str(store.ds), "name": store.ds.name,
-            "frames": store.frame_list(),
-            "objects": [{"id": i, "name": n} for i, n in sorted(mapping.items())],
-            "prompts": store.prompts(), "mapping_version": mversion,
-            "labels": labels, "labels_version": lversion, "bad_labels": bad_labels,
-            "keyframes": store.keyframe_fids(), "keyframe_stamps": store.keyframe_stamps(),
-            "labelme": store.labelme_fids(),
-            "masks": store.mask_fids(), "suggested": store.suggested(), "propagation": prop.status(),
-        }
+def _state(store: DatasetStore, prop: Propagation) -> dict[str, Any]:
+    """Everything the page shows besides pixels: frames, objects, labels, keyframes, masks, suggestions."""
+    store.refresh_frames()
+    mapping, mversion = store.objects()
+    labels, lversion, bad_labels = store.labels()
+    return {
+        "dataset": str(store.ds), "name": store.ds.name,
+        "frames": store.frame_list(),
+        "objects": [{"id": i, "name": n} for i, n in sorted(mapping.items())],
+        "prompts": store.prompts(), "mapping_version": mversion,
+        "labels": labels, "labels_version": lversion, "bad_labels": bad_labels,
+        "keyframes": store.keyframe_fids(), "keyframe_stamps": store.keyframe_stamps(),
+        "labelme": store.labelme_fids(),
+        "masks": store.mask_fids(), "suggested": store.suggested(), "propagation": prop.status(),
+    }
+
+
+def _keyframe_json(store: DatasetStore, fid: str, index, versions) -> dict[str, Any]:
+    png = None if index is None else "data:image/png;base64," + base64.b64encode(encode_index_png(index)).decode()
+    return {"fid": store.fid(fid), "exists": index is not None, "versions": versions, "png": png,
+            "read_only": store.fid(fid) in store.labelme_fids(), "keyframes": store.keyframe_fids()}
+
+
+def _read_routes(app, store: DatasetStore, prop: Propagation) -> None:
+    """GET: the state, a frame's image, thumbnail, propagated mask and keyframe, the propagation's progress."""
+    from fastapi import HTTPException
+    from fastapi.responses import JSONResponse, Response
 
     @app.get("/api/state")
     def get_state():
-        return JSONResponse(state(), headers=nocache)
+        return JSONResponse(_state(store, prop), headers=NOCACHE)
 
     @app.get("/api/image/{fid}")
     def image(fid: str):
@@ -270,17 +302,21 @@ def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1",
         data = store.mask_png(fid)
         if data is None:
             raise HTTPException(404, "no propagated mask for this frame yet")
-        return Response(data, media_type="image/png", headers=nocache)
-
-    def keyframe_json(fid: str, index, versions) -> dict[str, Any]:
-        png = None if index is None else "data:image/png;base64," + base64.b64encode(encode_index_png(index)).decode()
-        return {"fid": store.fid(fid), "exists": index is not None, "versions": versions, "png": png,
-                "read_only": store.fid(fid) in store.labelme_fids(), "keyframes": store.keyframe_fids()}
+        return Response(data, media_type="image/png", headers=NOCACHE)
 
     @app.get("/api/keyframe/{fid}")
     def get_keyframe(fid: str):
         index, versions = store.keyframe(fid)
-        return JSONResponse(keyframe_json(fid, index, versions), headers=nocache)
+        return JSONResponse(_keyframe_json(store, fid, index, versions), headers=NOCACHE)
+
+    @app.get("/api/propagate")
+    def propagate_status():
+        return JSONResponse(prop.status(), headers=NOCACHE)
+
+
+def _edit_routes(app, store: DatasetStore, prop: Propagation) -> None:
+    """POST: keyframe strokes (paint, erase, undo, delete), labels, objects, and starting propagation."""
+    from fastapi import Depends, Request
 
     async def body(request: Request) -> Fields:
         return Fields(parse_json(await request.body()), request.url.path)
@@ -289,21 +325,21 @@ def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1",
 
     @app.post("/api/keyframe/{fid}")
     def edit_keyframe(fid: str, b: Fields = Depends(body)):
-        op = {"object": b.integer("object"), "name": b.text("name", None), "shape": b.choice("shape", ("polygon", "box", "found")),
-              "points": b.points("points"), "mode": b.choice("mode", ("paint", "erase")),
-              "versions": b.versions("versions")}
+        op = {"object": b.integer("object"), "name": b.text("name", None),
+              "shape": b.choice("shape", ("polygon", "box", "found")), "points": b.points("points"),
+              "mode": b.choice("mode", ("paint", "erase")), "versions": b.versions("versions")}
         index, versions = store.edit_keyframe(fid, op)
-        return keyframe_json(fid, index, versions)
+        return _keyframe_json(store, fid, index, versions)
 
     @app.post("/api/keyframe/{fid}/undo")
     def undo_keyframe(fid: str, b: Fields = Depends(body)):
         index, versions = store.undo_keyframe(fid, b.versions("versions"))
-        return keyframe_json(fid, index, versions)
+        return _keyframe_json(store, fid, index, versions)
 
     @app.post("/api/keyframe/{fid}/delete")
     def delete_keyframe(fid: str, b: Fields = Depends(body)):
         store.delete_keyframe(fid, b.versions("versions"))
-        return keyframe_json(fid, None, {})
+        return _keyframe_json(store, fid, None, {})
 
     @app.post("/api/labels")
     def edit_labels(b: Fields = Depends(body)):
@@ -312,30 +348,23 @@ def create_app(ds: str | Path, token: str, port: int, host: str = "127.0.0.1",
     @app.post("/api/objects")
     def add_object(b: Fields = Depends(body)):
         store.add_object(b.text("name"), b.text("description", None) or None)
-        return state()
+        return _state(store, prop)
 
     @app.post("/api/objects/rename")
     def rename_object(b: Fields = Depends(body)):
         store.rename_object(b.text("old"), b.text("new"))
-        return state()
+        return _state(store, prop)
 
     @app.post("/api/objects/describe")
     def describe_object(b: Fields = Depends(body)):
         store.describe_object(b.text("name"), b.text("text"))
-        return state()
+        return _state(store, prop)
 
     @app.post("/api/propagate")
     def propagate():
         if not store.keyframe_fids():
             raise InterRealError("draw at least one keyframe mask before propagating")
         return prop.start(store.inside(store.ds / KEYFRAMES_DIR))
-
-    @app.get("/api/propagate")
-    def propagate_status():
-        return JSONResponse(prop.status(), headers=nocache)
-
-    return LocalGuard(app, token, allowed_hosts(host, port), cookie, max_body=int(max_request_mb * MiB),
-                      token_header=TOKEN_HEADER, command="interreal annotate", limit_flag="--max-request-mb")
 
 
 # --------------------------------------------------------------------------------------------------------------------

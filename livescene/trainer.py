@@ -19,9 +19,7 @@ import math
 import os
 import random
 import shutil
-import signal
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -49,6 +47,7 @@ from .render import render_view
 from .run import (RESUME_KEYS, Run, check_run_dataset, checkpoint_config, checkpoint_files, load_checkpoint,
                   load_run, remove_stale_temporaries, run_lock, write_checkpoint)
 from .sampler import render_rays
+from .signals import stop_signals
 
 __all__ = ["Run", "Trainer", "build_model", "load_run", "train"]  # Run, load_run: `livescene.run`'s, named here too
 WARM_SIDE = 32  # long side of the untimed render before a time limit's first measured one
@@ -549,32 +548,6 @@ def train(dataset: str | Path, out: str | Path, cfg: TrainConfig, device: str = 
         if created and out.is_dir() and not checkpoint_files(out):
             shutil.rmtree(out, ignore_errors=True)  # refused, or nothing resumable written: leave no half run behind
         raise
-
-
-@contextlib.contextmanager
-def stop_signals(holder: list["Trainer"]):
-    """Ctrl-C and SIGTERM while training stop it after the current step (`Trainer._loop` raises there, the trainer
-    saves a checkpoint); a second one, or one during loading, stops at once. Main thread only (elsewhere signals
-    cannot be caught, and nothing changes)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame):  # noqa: ARG001 - the signal module's signature
-        name = "SIGTERM" if signum == signal.SIGTERM else "Ctrl-C"
-        trainer = holder[0] if holder else None
-        if trainer is not None and trainer.in_loop and trainer.stop_signal is None:
-            trainer.stop_signal = name
-            print(f"\nlivescene train: {name}: stopping after this step (again to stop at once)", file=sys.stderr)
-            return
-        raise Terminated("terminated (SIGTERM)") if name == "SIGTERM" else KeyboardInterrupt()
-
-    before = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for s, h in before.items():
-            signal.signal(s, h)
 
 
 def _train(trainer: "Trainer", out: Path) -> dict[str, Any]:

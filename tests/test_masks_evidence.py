@@ -154,7 +154,7 @@ def test_cut_moves_the_boundary_where_the_keyframe_colours_agree(monkeypatch):
     takes the strip away, the same on a second run; and whatever GrabCut says, a pixel changes label only where the
     keyframe's colours favour the new one (a cut that takes the whole window adds only red, one that takes nothing
     removes only green)."""
-    from interreal.masks import track
+    from interreal.masks import evidence
 
     w, h = 160, 120
     frame, lab = _keyframe((220, 40, 40))          # a red disk (radius 30 at (80, 60)) on noisy green
@@ -178,7 +178,7 @@ def test_cut_moves_the_boundary_where_the_keyframe_colours_agree(monkeypatch):
     red = model.hist[0, bins] > 2 * model.hist[1, bins]
     green = model.hist[0, bins] < 0.5 * model.hist[1, bins]
     for everything in (True, False):
-        monkeypatch.setattr(track, "_cut_window", lambda rgb, obj, *a, **k: np.full(obj.shape, everything))
+        monkeypatch.setattr(evidence, "_cut_window", lambda rgb, obj, *a, **k: np.full(obj.shape, everything))
         changed = (prop._cut(soft, frame, model, bins)[..., 0] > 0.5) != (soft[..., 0] > 0.5)
         assert changed.any() and (red if everything else green)[changed].all()
 
@@ -207,7 +207,7 @@ def test_cut_leaves_other_objects_alone(monkeypatch):
     mask keeps the labels and leaves each object's probability on the other as it was, and one that takes nothing
     moves each object's probability to the background only, never the other object's (before, each object's cut halved its neighbour's probability inside its window: the lid's mask
     fell from 32000 to 1700 px in four frames where the person's window covered it)."""
-    from interreal.masks import track
+    from interreal.masks import evidence
 
     w, h = 160, 120
     img = np.full((h, w, 3), 100, np.uint8)
@@ -220,14 +220,14 @@ def test_cut_leaves_other_objects_alone(monkeypatch):
     lab[30:90, 40:80], lab[30:90, 80:120] = 1, 2
     model = ColourModel.fit(img, *anchor_soft(lab, 2, (w, h)), AppearanceConfig())
     bins = quantize(img, model.cfg.bins)
-    monkeypatch.setattr(track, "_cut_window", lambda rgb, obj, *a, **k: obj.copy())
+    monkeypatch.setattr(evidence, "_cut_window", lambda rgb, obj, *a, **k: obj.copy())
     out = prop._cut(soft, img, model, bins)
     assert np.array_equal(out.argmax(-1), soft.argmax(-1))
     for k in (0, 1):   # each object's channel where the other one is: as it was
         there = soft[..., 1 - k] > 0.5
         assert np.allclose(out[..., k][there], soft[..., k][there], atol=1e-6)
-    monkeypatch.setattr(track, "_cut_window", lambda rgb, obj, *a, **k: np.zeros_like(obj))
-    monkeypatch.setattr(track, "CUT_COLOUR", 0.0 + 1e-9)  # whatever the colours: let the cut remove
+    monkeypatch.setattr(evidence, "_cut_window", lambda rgb, obj, *a, **k: np.zeros_like(obj))
+    monkeypatch.setattr(evidence, "CUT_COLOUR", 0.0 + 1e-9)  # whatever the colours: let the cut remove
     out = prop._cut(soft, img, model, bins)
     assert np.allclose(out.sum(-1), 1.0, atol=1e-5)
     assert np.allclose(out[..., 1][soft[..., 0] > 0.5], soft[..., 1][soft[..., 0] > 0.5])   # 1 untouched on 0

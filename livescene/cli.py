@@ -6,7 +6,7 @@ import os
 import sys
 from typing import Sequence
 
-from interreal.cli import run_cli
+from interreal.runner import run_cli
 from interreal.errors import InterRealError
 
 from .commands import COMMANDS

@@ -30,6 +30,7 @@ LIVESCENE_MAY_IMPORT = {
     "interreal.conventions", "interreal.layout",  # frame names, axes, the file layout the dataset speaks in
     "interreal.errors",  # one error hierarchy for both CLIs
     "interreal.atomic", "interreal.report",  # atomic writes; stage reports (RUN/reports/*.json)
+    "interreal.runner",  # the command-line driver both entry points share
     "interreal.video",  # H.264 writing
     "interreal.localserver",  # the rules every local web app serves under (`livescene view`)
     "interreal.transients",  # the dataset's transient layer (DS/transients/: people, hands)
@@ -37,8 +38,6 @@ LIVESCENE_MAY_IMPORT = {
 }
 # ... and what those need inside interreal, which livescene itself must not import
 SURFACE_INTERNALS = {"interreal.provenance", "interreal.images"}
-# livescene's command layer may also use the shared CLI driver
-LIVESCENE_COMMANDS_MAY_IMPORT = LIVESCENE_MAY_IMPORT | {"interreal.cli"}
 # the one interreal module above both packages
 ABOVE_BOTH = {"interreal.demo"}
 # top-level packages whose import inside a function is allowed in livescene: optional extras (not installed by
@@ -212,7 +211,7 @@ def test_no_import_cycle_within_a_package(package):
 def test_livescene_imports_only_the_dataset_surface_of_interreal():
     bad = []
     for mod, path in modules("livescene").items():
-        allowed = LIVESCENE_COMMANDS_MAY_IMPORT if mod.startswith(COMMAND_MODULES) else LIVESCENE_MAY_IMPORT
+        allowed = LIVESCENE_MAY_IMPORT
         for imp in imports(mod, path):
             name = resolve(imp.target)
             if name.split(".")[0] == "interreal" and not _within(name, allowed):
@@ -306,3 +305,24 @@ def test_the_checker_sees_a_cycle_and_a_forbidden_import(tmp_path):
                    "        try:\n            import cv2\n        except ImportError:\n            pass\n")
     found = {i.target: (i.in_function, i.type_only) for i in imports("livescene.mod", src)}
     assert found == {"os": (False, False), "livescene.a.B": (False, True), "cv2": (True, False)}
+
+
+MAX_MODULE_LINES = 600  # a longer module holds more than one concept: split it along them
+MAX_FUNCTION_LINES = 120  # ... and a longer function more than one step
+
+
+def test_no_module_or_function_is_too_long():
+    too_long = []
+    for package in ("interreal", "livescene"):
+        for name, path in modules(package).items():
+            text = path.read_text(encoding="utf-8")
+            lines = text.count("\n")
+            if lines > MAX_MODULE_LINES:
+                too_long.append(f"{path.relative_to(ROOT)}: {lines} lines (at most {MAX_MODULE_LINES})")
+            for node in ast.walk(ast.parse(text, str(path))):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    n = node.end_lineno - node.lineno + 1
+                    if n > MAX_FUNCTION_LINES:
+                        too_long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}: {n} lines "
+                                        f"(at most {MAX_FUNCTION_LINES})")
+    assert not too_long, "split along the concepts:\n" + "\n".join(too_long)

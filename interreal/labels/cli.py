@@ -44,6 +44,7 @@ def add_arguments(p) -> None:
                    help="rename an object in mapping.yaml, labels, keyframe annotations and prompts.yaml")
     p.add_argument("--list", action="store_true", help="print the labels as a table (the default with no edits)")
     p.add_argument("--json", action="store_true", help="with --list: print JSON rows instead of a table")
+    p.add_argument("--objects", action="store_true", help="print the dataset's object names, one per line (scripts)")
     add_unit_arguments(p)
     p.add_argument("--replace", action="store_true", help="with --from: replace all labels instead of merging")
     p.add_argument("--add-objects", action="store_true",
@@ -162,6 +163,10 @@ def main(args) -> int:
                 rep.warn(problem, cause="stale-label")
         for line in done:
             print(line)
+    if args.objects:
+        for _, name in sorted(read_objects(ds).items()):
+            print(name)
+        return 0
     if args.list or not edits:
         if args.json:
             print(json.dumps([{"frame": k, "object": n, "value": v if isinstance(v, (int, float, str)) else repr(v)}

@@ -179,6 +179,28 @@ def render_view(run, c2w_gl: np.ndarray, intrinsics: Intrinsics, states: StateSp
             "traced": res.get("traced", h * w), "rays_reused": res.get("rays_reused", 0)}
 
 
+def sweep_camera(run, name: str, candidates: list[int], scale: float = 0.25,
+                 tol: float = 0.1) -> tuple[int, float]:
+    """The view, of `candidates` (frame positions), from which object `name`'s state sweep shows most: the one where
+    the largest share of the object's rendered pixels (at state 0 or 1) changes colour by more than `tol` between
+    the two, rendered at `scale`. A door seen edge-on barely changes; seen from the front, most of it does.
+    Returns (position, that share)."""
+    v = run.views
+    k = list(v.names).index(name)
+    best = (candidates[0], -1.0)
+    for i in candidates:
+        intr = v.intrinsics[i]
+        small = intr.scaled(max(8, round(intr.w * scale)), max(8, round(intr.h * scale)))
+        shots = [render_view(run, v.c2w_gl[i], small, {name: s}, time=float(v.times[i])) for s in (0.0, 1.0)]
+        part = (shots[0]["probs"][..., k] > 0.5) | (shots[1]["probs"][..., k] > 0.5)
+        if part.sum() < 4:
+            continue
+        share = float((np.abs(shots[0]["rgb"] - shots[1]["rgb"]).mean(-1) > tol)[part].mean())
+        if share > best[1]:
+            best = (i, share)
+    return best[0], max(best[1], 0.0)
+
+
 def _render_exact(run, c2w_gl: np.ndarray, intrinsics: Intrinsics, values: torch.Tensor, chunk: int
                   ) -> dict[str, torch.Tensor]:
     """`sampler.render_rays` over every pixel: rgb (H*W, 3), depth along the ray, acc, probs (H*W, M + 1), and the

@@ -28,6 +28,7 @@ def test_demo_pipeline_tiny(tmp_path: Path):
     assert ev["psnr"] > 10.0 and ev["state_mae"] is not None
     sweeps = sorted((cfg.out / "renders").glob("sweep_*.mp4"))
     assert len(sweeps) == 2 and all(p.stat().st_size > 1000 for p in sweeps)
+    assert "from the view that shows it best" in by["render"] and "fridge door" in by["render"]
     table = (cfg.out / "demo.md").read_text()
     assert table == format_table(rows) + "\n"
     # the README's grounding example on the demo's run: the capture's prompts travelled into the dataset

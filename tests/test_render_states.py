@@ -173,3 +173,34 @@ def test_refine_interpolates_gradients_by_their_second_differences():
     lo = flat.view(hp, wp, -1).amin((0, 1))
     hi = flat.view(hp, wp, -1).amax((0, 1))
     assert (values >= lo - 1e-6).all() and (values <= hi + 1e-6).all()  # no overshoot
+
+
+def test_sweep_camera_picks_the_view_where_the_part_changes_most(monkeypatch):
+    """A door seen edge-on from camera 0 (its pixels barely change between states) and from the front by camera 2
+    (most change): the sweep is rendered from camera 2, with the share that changes."""
+    import types
+
+    import numpy as np
+
+    from interreal.dataset import Intrinsics
+    from livescene import render as R
+
+    intr = Intrinsics(w=40, h=30, fl_x=30.0, fl_y=30.0, cx=20.0, cy=15.0)
+    views = types.SimpleNamespace(names=["door"], intrinsics=[intr] * 3, c2w_gl=[np.eye(4) * (i + 1) for i in range(3)],
+                                  times=np.zeros(3))
+    run = types.SimpleNamespace(views=views)
+
+    def fake(run, c2w, small, states, time=0.0):
+        cam = int(c2w[0, 0]) - 1
+        h, w = small.h, small.w
+        probs = np.zeros((h, w, 2), np.float32)
+        probs[2:8, 2:8, 0] = 1.0  # the door's pixels
+        rgb = np.zeros((h, w, 3), np.float32)
+        changes = {0: 0.05, 1: 0.3, 2: 0.8}[cam]  # share of the door's rows that change colour at state 1
+        if states["door"] == 1.0:
+            rgb[2:2 + round(6 * changes), 2:8] = 1.0
+        return {"rgb": rgb, "probs": probs}
+
+    monkeypatch.setattr(R, "render_view", fake)
+    i, share = R.sweep_camera(run, "door", [0, 1, 2], scale=0.5)
+    assert i == 2 and 0.7 < share <= 1.0

@@ -34,12 +34,8 @@ from .soft import disk
 MODEL = ("area", "trust", "thin", "edges", "agree", "two_sided")  # the predicted J's inputs, in order
 FEATURES = MODEL + ("appearance", "reach", "jump")
 # linear weights on MODEL (+ bias last), fit (`fit`: small ridge, signs held) on the shared DAVIS sequences, both
-# protocols, three settings of the stage (default, `ours-fast`, `baseline`: 60 runs; `python recipes/bench_masks.py
-# --variants ours,ours-fast,baseline --fit` prints them). Several settings, not the default's 20 runs alone: fit on
-# those, the weights warned about every bad one of them and missed the masks of another setting (motocross-jump
-# with the global colour test, J 0.57, predicted 0.73); fit on the 60, they warn as well on each sequence left out as
-# in-sample. RIDGE was 0.1: on 20 runs it shrank every slope and pulled each prediction toward the mean J, so left
-# out sequence by sequence the warning caught half the bad runs (on 60 runs the ridge hardly matters)
+# protocols, three settings of the stage (60 runs: several settings, so the warning holds for each, not only the
+# default's masks); `python recipes/bench_masks.py --variants ours,ours-fast,baseline --fit` prints them
 WEIGHTS = np.array([0.539, 0.104, -0.107, 0.167, 0.195, -0.035, 0.055])
 RIDGE = 0.01
 # the sign each MODEL cue's weight may take (`fit`): 1 = higher is better, -1 = higher is worse, 0 = either

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from . import atomic
@@ -178,9 +179,9 @@ def evaluate_run(cfg: DemoConfig, run_dir: Path, capture: Path | None) -> dict[s
 
 
 def render_sweeps(cfg: DemoConfig, run_dir: Path) -> list[Path]:
-    """A video per object sweeping its state 0 -> 1 -> 0, from the view that shows the motion best
-    (`livescene.render.sweep_camera` over views spread along the capture)."""
-    from livescene.render import render_view, sweep_camera, write_video
+    """A video per object sweeping its state 0 -> 1 -> 0 (the others closed), from the view that shows the motion
+    best (`livescene.render.sweep_camera` over views spread along the capture), and one strip of them all."""
+    from livescene.render import render_view, sweep_camera, sweep_states, write_video
     from livescene.trainer import load_run
 
     t0 = time.perf_counter()
@@ -188,22 +189,41 @@ def render_sweeps(cfg: DemoConfig, run_dir: Path) -> list[Path]:
     views = run.views
     n = len(views.c2w_gl)
     candidates = sorted(set(np.linspace(0, n - 1, min(n, SWEEP_CANDIDATES)).round().astype(int).tolist()))
-    out, shown = [], []
+    out, shown, rows = [], [], []
     for name in views.names:
         i, share = sweep_camera(run, name, candidates)
         frames = []
         for v in np.linspace(0.0, 1.0, cfg.sweep_frames):
-            r = render_view(run, views.c2w_gl[i], views.intrinsics[i], {name: float(v)}, time=float(views.times[i]))
+            r = render_view(run, views.c2w_gl[i], views.intrinsics[i], sweep_states(views.names, name, v),
+                            time=float(views.times[i]))
             frames.append((r["rgb"] * 255).round().astype(np.uint8))
+        rows.append(strip_row(name, frames))
         frames += frames[::-1]
         path = cfg.out / "renders" / f"sweep_{name.replace(' ', '_')}.mp4"
         path.parent.mkdir(parents=True, exist_ok=True)
         write_video(path, frames, fps=12)
         out.append(path)
         shown.append(f"{name} {100 * share:.0f} %")
+    if rows:
+        atomic.write_image(cfg.out / "renders" / "sweep_strip.png", np.vstack(rows))
     _row(cfg, "render", time.perf_counter() - t0,
          f"{len(out)} state sweeps, each from the view that shows it best (pixels that change: {', '.join(shown)})")
     return out
+
+
+def strip_row(name: str, frames: list[np.ndarray], states: tuple[float, ...] = (0.0, 1 / 3, 2 / 3, 1.0),
+              width: int = 200) -> np.ndarray:
+    """One row of `renders/sweep_strip.png`: the object at a few states of its sweep (`frames`, state 0 to 1),
+    each captioned: the picture to look at first."""
+    tiles = []
+    for t in states:
+        im = frames[round(t * (len(frames) - 1))]
+        im = np.ascontiguousarray(cv2.resize(im, (width, round(im.shape[0] * width / im.shape[1])),
+                                             interpolation=cv2.INTER_AREA))
+        cv2.putText(im, f"{name} {t:.2f}", (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
+                    cv2.LINE_AA)
+        tiles.append(im)
+    return np.hstack(tiles)
 
 
 def format_table(rows: list[dict[str, Any]]) -> str:
@@ -242,7 +262,7 @@ def run_demo(cfg: DemoConfig) -> list[dict[str, Any]]:
     print()
     print(format_table(cfg.rows))
     print(f"\nopen: livescene view {run}   (orbit the scene, a slider per object)\n"
-          f"      {cfg.out / 'renders'}/sweep_*.mp4   (each object from closed to open and back)\n"
+          f"      {cfg.out / 'renders'}/sweep_*.mp4   (each object from closed to open and back; sweep_strip.png)\n"
           "the table: each stage's time and how well it did (poses against the simulator's cameras, masks against "
           "its masks, held-out PSNR and state error of the trained scene; on your own video, what each stage "
           "measured itself)")

@@ -235,7 +235,7 @@ def extract_frames(source: str | Path, ds: str | Path, *, report: bool = True, *
             st["frames"] = len(indices)
         n_usable = int(stats.usable.sum())
         if len(indices) < 3:
-            what = "images" if _is_folder_source(src) else "decodable frames"
+            what = ("image" if _is_folder_source(src) else "decodable frame") + ("" if len(indices) == 1 else "s")
             raise InputError(f"{source} has only {len(indices)} {what}; at least 3 views of the scene are needed "
                              "for poses: add more")
         if n_usable < 3:

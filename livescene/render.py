@@ -181,24 +181,28 @@ def render_view(run, c2w_gl: np.ndarray, intrinsics: Intrinsics, states: StateSp
 
 def sweep_camera(run, name: str, candidates: list[int], scale: float = 0.25,
                  tol: float = 0.1) -> tuple[int, float]:
-    """The view, of `candidates` (frame positions), from which object `name`'s state sweep shows most: the one where
-    the largest share of the object's rendered pixels (at state 0 or 1) changes colour by more than `tol` between
-    the two, rendered at `scale`. A door seen edge-on barely changes; seen from the front, most of it does.
-    Returns (position, that share)."""
+    """The view, of `candidates` (frame positions), from which object `name`'s state sweep (the other objects
+    closed) shows most: the most of the object's rendered pixels (at state 0 or 1) changing colour by more than `tol`
+    between the two, rendered at `scale`. A door seen edge-on, or hidden behind another part, barely changes; seen
+    from the front, most of it does. Returns (position, the share of its pixels that change there)."""
     v = run.views
     k = list(v.names).index(name)
-    best = (candidates[0], -1.0)
+    best = (candidates[0], -1, 0.0)
     for i in candidates:
         intr = v.intrinsics[i]
         small = intr.scaled(max(8, round(intr.w * scale)), max(8, round(intr.h * scale)))
-        shots = [render_view(run, v.c2w_gl[i], small, {name: s}, time=float(v.times[i])) for s in (0.0, 1.0)]
+        shots = [render_view(run, v.c2w_gl[i], small, sweep_states(v.names, name, s), time=float(v.times[i]))
+                 for s in (0.0, 1.0)]
         part = (shots[0]["probs"][..., k] > 0.5) | (shots[1]["probs"][..., k] > 0.5)
-        if part.sum() < 4:
-            continue
-        share = float((np.abs(shots[0]["rgb"] - shots[1]["rgb"]).mean(-1) > tol)[part].mean())
-        if share > best[1]:
-            best = (i, share)
-    return best[0], max(best[1], 0.0)
+        changed = (np.abs(shots[0]["rgb"] - shots[1]["rgb"]).mean(-1) > tol) & part
+        if int(changed.sum()) > best[1]:
+            best = (i, int(changed.sum()), float(changed.sum() / max(part.sum(), 1)))
+    return best[0], best[2]
+
+
+def sweep_states(names: Sequence[str], name: str, value: float) -> dict[str, float]:
+    """States for one frame of `name`'s sweep: it at `value`, every other object closed (none in the way)."""
+    return {n: (float(value) if n == name else 0.0) for n in names}
 
 
 def _render_exact(run, c2w_gl: np.ndarray, intrinsics: Intrinsics, values: torch.Tensor, chunk: int

@@ -347,7 +347,7 @@ CASES = [
     Case("masks-duplicate-names", _masks_dup, 2, ("['door'] are used for more than one object",)),
     Case("poses-file-broken", _poses_file_broken, 2, ("t.json is not valid JSON",)),
     # frames / ingest
-    Case("one-image", _frames_from(_one_image), 2, ("has only 1 images", "at least 3")),
+    Case("one-image", _frames_from(_one_image), 2, ("has only 1 image;", "at least 3")),
     Case("video-empty", _frames_from(_bytes("e.mp4", b"")), 2, ("empty (0 bytes)",)),
     Case("video-garbage", _frames_from(_bytes("g.mp4", b"\x00" * 4000)), 2, ("not a readable video",)),
     Case("video-truncated", _frames_from(_truncated_video), 2, ("truncated",)),

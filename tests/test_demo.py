@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import pytest
 
 from interreal.demo import DemoConfig, format_table, run_demo
@@ -29,6 +30,8 @@ def test_demo_pipeline_tiny(tmp_path: Path):
     sweeps = sorted((cfg.out / "renders").glob("sweep_*.mp4"))
     assert len(sweeps) == 2 and all(p.stat().st_size > 1000 for p in sweeps)
     assert "from the view that shows it best" in by["render"] and "fridge door" in by["render"]
+    strip = cv2.imread(str(cfg.out / "renders" / "sweep_strip.png"))
+    assert strip is not None and strip.shape[1] == 4 * 200 and strip.shape[0] > 100  # 2 objects x 4 states
     table = (cfg.out / "demo.md").read_text()
     assert table == format_table(rows) + "\n"
     # the README's grounding example on the demo's run: the capture's prompts travelled into the dataset

@@ -197,6 +197,7 @@ def test_sweep_camera_picks_the_view_where_the_part_changes_most(monkeypatch):
         probs[2:8, 2:8, 0] = 1.0  # the door's pixels
         rgb = np.zeros((h, w, 3), np.float32)
         changes = {0: 0.05, 1: 0.3, 2: 0.8}[cam]  # share of the door's rows that change colour at state 1
+        assert set(states) == {"door"}
         if states["door"] == 1.0:
             rgb[2:2 + round(6 * changes), 2:8] = 1.0
         return {"rgb": rgb, "probs": probs}

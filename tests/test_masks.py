@@ -520,9 +520,11 @@ def test_each_keyframes_colour_model_is_fit_once_for_all_its_chains(tmp_path, mo
     keys = write_keys(tmp_path / "keys", truths, [2, 6, 10], ["red disk", "blue square"])
     fit = appearance.ColourModel.fit.__func__
     seen: list[tuple[int, int]] = []
+    alive: list = []  # the arrays kept alive: a freed array's id may be reused by the next one (a false "twice")
 
     def counting(cls, image, soft, known, cfg):
         seen.append((id(soft), id(known)))  # a chain's start passes its keyframe's anchor arrays themselves
+        alive.append((soft, known))
         return fit(cls, image, soft, known, cfg)
 
     monkeypatch.setattr(appearance.ColourModel, "fit", classmethod(counting))

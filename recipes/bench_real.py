@@ -69,12 +69,12 @@ def _extra(p) -> None:
 
 def objects_only(keyframes: Path, out: Path) -> Path:
     """A copy of LabelMe keyframes without their ignore-class shapes (hand, person): nothing painted but objects."""
-    from interreal.transients import IGNORE_LABELS
+    from interreal.transients import is_ignore_label
 
     out.mkdir(parents=True, exist_ok=True)
     for src in sorted(keyframes.glob("*.json")):
         doc = json.loads(src.read_text())
-        doc["shapes"] = [s for s in doc["shapes"] if s["label"].strip().lower() not in IGNORE_LABELS]
+        doc["shapes"] = [s for s in doc["shapes"] if not is_ignore_label(s["label"], [PART])]
         (out / src.name).write_text(json.dumps(doc))
     return out
 

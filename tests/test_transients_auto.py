@@ -27,6 +27,24 @@ def needs_model() -> None:
         pytest.fail(f"{problem} (bash .ci/setup installs it)")
 
 
+def sim_dataset(root: Path, frames: int, size: tuple[int, int], keyframe_every: int, seed: int,
+                keys: dict[int, np.ndarray] | None = None):
+    """A small simulated capture as a dataset (its video's frames in DS/images) and a keyframe folder: the capture's
+    own keyframes, or `keys` (position -> index map). Returns (capture, DS, keyframe folder)."""
+    from interreal.synth import Capture, SynthConfig, write_capture
+
+    cap = Capture.open(write_capture(SynthConfig(frames=frames, width=size[0], height=size[1],
+                                                 keyframe_every=keyframe_every, seed=seed), root / "cap",
+                                     progress=False))
+    ds, kf = root / "ds", root / "keys"
+    for i, rgb in cap.frames():
+        atomic.write_image(ds / "images" / f"{frame_name(i)}.png", rgb)
+    for k, index in (keys if keys is not None else {k: cap.instance(k) for k in cap.keyframes}).items():
+        atomic.write_image(kf / f"{fid_of_index(k)}.png", index)
+    atomic.write_yaml(kf / "mapping.yaml", dict(enumerate(cap.names)))
+    return cap, ds, kf
+
+
 def truth_of(fid: str, kinds=("hand", "person"), size: tuple[int, int] | None = None) -> np.ndarray:
     fx = json.loads(FIXTURE.read_text())
     w, h = fx["size"]
@@ -148,17 +166,7 @@ def test_fill_gaps_interpolates_short_gaps_only():
 def test_masks_stage_writes_the_auto_layer_objects_win(tmp_path, monkeypatch):
     """With a layer proposed (here a fixed one), DS/transients/ holds it less the object's pixels, the SfM masks
     leave it out, the report and the printed line say so."""
-    from interreal.synth import Capture, SynthConfig, write_capture
-
-    cap = Capture.open(write_capture(SynthConfig(frames=8, width=160, height=120, keyframe_every=4, seed=1),
-                                     tmp_path / "cap", progress=False))
-    ds = tmp_path / "ds"
-    for i, rgb in cap.frames():
-        atomic.write_image(ds / "images" / f"{frame_name(i)}.png", rgb)
-    keys = tmp_path / "keys"
-    for k in cap.keyframes:
-        atomic.write_image(keys / f"{fid_of_index(k)}.png", cap.instance(k))
-    atomic.write_yaml(keys / "mapping.yaml", dict(enumerate(cap.names)))
+    cap, ds, keys = sim_dataset(tmp_path, 8, (160, 120), keyframe_every=4, seed=1)
     obj0 = cap.instance(2) == 1
     block = np.zeros((120, 160), bool)
     block[10:60, 20:100] = True
@@ -188,16 +196,9 @@ def test_masks_stage_writes_the_auto_layer_objects_win(tmp_path, monkeypatch):
 
 def test_a_missing_hand_model_is_one_line_and_the_stage_runs(tmp_path, monkeypatch, capsys):
     from interreal.report import read_report
-    from interreal.synth import Capture, SynthConfig, write_capture
 
-    cap = Capture.open(write_capture(SynthConfig(frames=4, width=96, height=72, keyframe_every=3, seed=2),
-                                     tmp_path / "cap", progress=False))
-    ds = tmp_path / "ds"
-    for i, rgb in cap.frames():
-        atomic.write_image(ds / "images" / f"{frame_name(i)}.png", rgb)
-    keys = tmp_path / "keys"
+    cap, ds, keys = sim_dataset(tmp_path, 4, (96, 72), keyframe_every=3, seed=2, keys={})
     atomic.write_image(keys / f"{fid_of_index(0)}.png", cap.instance(0))
-    atomic.write_yaml(keys / "mapping.yaml", dict(enumerate(cap.names)))
     monkeypatch.setattr("interreal.masks.stage.model_problem", lambda: "the hand model does not run here (No module "
                                                                         "named 'mediapipe'); install it with: pip ...")
     fig = propagate(ds, keys, preview="none", progress=True)
@@ -267,19 +268,12 @@ def test_one_click_keeps_a_found_hand_as_painted_ignore(tmp_path):
 def test_a_keyframe_that_paints_ignore_gets_no_proposal(tmp_path, monkeypatch):
     """Where the user painted the ignore class on a keyframe, that painting is the layer there: a proposal the
     user took out does not come back on that keyframe."""
-    from interreal.synth import Capture, SynthConfig, write_capture
     from interreal.transients import IGNORE
 
-    cap = Capture.open(write_capture(SynthConfig(frames=6, width=96, height=72, keyframe_every=3, seed=2),
-                                     tmp_path / "cap", progress=False))
-    ds = tmp_path / "ds"
-    for i, rgb in cap.frames():
-        atomic.write_image(ds / "images" / f"{frame_name(i)}.png", rgb)
-    keys = tmp_path / "keys"
+    cap, ds, keys = sim_dataset(tmp_path, 6, (96, 72), keyframe_every=3, seed=2, keys={})
     key = cap.instance(0).copy()
     key[0:6, 0:6] = IGNORE  # a small painted patch far from the proposal
     atomic.write_image(keys / f"{fid_of_index(0)}.png", key)
-    atomic.write_yaml(keys / "mapping.yaml", dict(enumerate(cap.names)))
     block = np.zeros((72, 96), bool)
     block[40:70, 60:90] = True
 
@@ -324,7 +318,6 @@ def test_a_growth_over_half_the_frame_keeps_the_hand_and_is_warned(tmp_path, mon
     """GrabCut that leaks onto a wall of the skin's colour: the frame keeps the hand's outline only, the report names
     the frame (cause transient-leak)."""
     from interreal.report import read_report
-    from interreal.synth import Capture, SynthConfig, write_capture
 
     hand = _hand((48, 40), (0, 1), 12)[None]
 
@@ -338,14 +331,8 @@ def test_a_growth_over_half_the_frame_keeps_the_hand_and_is_warned(tmp_path, mon
     layer = A.propose(lambda p: frames[p], 3, (96, 72))
     assert layer.leaked == [1] and 0 < layer.masks[1].mean() < 0.2
 
-    cap = Capture.open(write_capture(SynthConfig(frames=3, width=96, height=72, keyframe_every=2, seed=2),
-                                     tmp_path / "cap", progress=False))
-    ds = tmp_path / "ds"
-    for i, rgb in cap.frames():
-        atomic.write_image(ds / "images" / f"{frame_name(i)}.png", rgb)
-    keys = tmp_path / "keys"
+    cap, ds, keys = sim_dataset(tmp_path, 3, (96, 72), keyframe_every=2, seed=2, keys={})
     atomic.write_image(keys / f"{fid_of_index(0)}.png", cap.instance(0))
-    atomic.write_yaml(keys / "mapping.yaml", dict(enumerate(cap.names)))
     monkeypatch.setattr("interreal.masks.stage.model_problem", lambda: None)
     fig = propagate(ds, keys, preview="none", progress=False)
     assert fig["transients"]["auto"]["leaked"] == [fid_of_index(1)]

@@ -58,7 +58,7 @@ def score(motion, fig: dict[str, Any], truth, true_states: np.ndarray) -> dict[s
 
 
 def run_part(ds_path: Path, cap: Path, o: int, route: str) -> dict[str, Any]:
-    from interreal import motions
+    from interreal.motions import stage as motions
     from interreal.dataset import known_states, load_dataset
     from interreal.sfm import colmap
     from interreal.synth.truth import truth_articulation

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from interreal.conventions import opencv_to_opengl
 from interreal.dataset import known_states
-from interreal.motion_silhouette import front_corners, measure_silhouettes
+from interreal.motions.silhouette import front_corners, measure_silhouettes
 from interreal.synth.camera import look_at
 
 W, H = 640, 480
@@ -119,7 +119,7 @@ def test_views_that_barely_move_are_refused_with_the_cause():
 
 def test_motions_stage_takes_the_silhouette_route(tmp_path):
     """`--route silhouette` tries it first; an accepted motion ends the search (no SfM, no PnP is run)."""
-    from interreal import motions
+    from interreal.motions import stage as motions
 
     ds, truth, st, kn, labelled = capture("slide")
     cfg = motions.MotionConfig(route="silhouette", min_pixels=50)
@@ -157,7 +157,7 @@ def test_lens_distortion_is_taken_into_account():
     undistorted before triangulation, so the front lands within 5 mm of the truth (1.7-3.4 mm; 13-16 mm at two
     corners with the lens ignored), and the silhouettes are bent by the lens: the drawer still measures as a slide."""
     from interreal.conventions import opengl_to_opencv
-    from interreal.motion_silhouette import Views, find_front
+    from interreal.motions.silhouette import Views, find_front
 
     ds, truth, st, kn, labelled = capture("slide", dist=np.array([0.2, 0.0, 0.0, 0.0, 0.0]), aim=(-0.3, 0.0, -0.2))
     masks = [ds.load_mask(f)[..., 0] for f in ds.frames]
@@ -171,7 +171,7 @@ def test_lens_distortion_is_taken_into_account():
 
 def test_view_spread_is_the_widest_angle_between_cameras_seen_from_the_part():
     """What a refusal states instead of "the views are too close together": cameras 90 deg apart around a point."""
-    from interreal.motion_silhouette import view_spread_deg
+    from interreal.motions.silhouette import view_spread_deg
 
     w2c = []
     for deg in (0.0, 30.0, 90.0):

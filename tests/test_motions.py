@@ -112,7 +112,7 @@ def test_measure_part_tries_another_mapper_seed_when_the_first_model_is_bent(mon
     """The geometry judges the part's reconstruction: a model bent by a drifting scale (positions that miss a rigid
     motion's by more than MAX_RESIDUAL of how far it moves the part) is mapped again with the next seed (on the
     same matches), and the best attempt is kept."""
-    from interreal import motions
+    from interreal.motions import stage as motions
 
     truth, states, known, good = _slide_case(seed=4, wild=0)
     bent = PartViews(good.frames, good.rot.copy(), good.u * np.linspace(1, 3, len(good.frames))[:, None],

@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from interreal.dataset import Articulation, known_states
-from interreal.motion_fit import FLAG_TOL, PartViews, fit_motion
+from interreal.motions.fit import FLAG_TOL, PartViews, fit_motion
 
 
 def _capture(motion: Articulation, states: np.ndarray, seed: int, rot_deg: float, pos_noise: float,
@@ -232,7 +232,7 @@ def test_pnp_route_measures_a_hinge_from_images_with_known_cameras():
     2 deg and its range within 5 %."""
     import cv2
 
-    from interreal.motion_pnp import pnp_views, reference_frames
+    from interreal.motions.pnp import pnp_views, reference_frames
 
     rng = np.random.default_rng(0)
     tex = cv2.GaussianBlur(rng.uniform(0, 255, (160, 240)).astype(np.float32), (0, 0), 2.0)
@@ -340,7 +340,7 @@ def test_part_views_follow_the_parts_middle_so_a_wobbling_pose_keeps_the_slide_d
     """A 2 deg wobble of the part's pose about its own middle swings the reconstruction's origin (a metre away) by
     3 cm: followed there, the drawer's direction came out degrees off; followed at its middle, within half a
     degree."""
-    from interreal import motions
+    from interreal.motions import stage as motions
 
     def axis_error() -> float:
         errs = []

@@ -186,7 +186,7 @@ def test_thread_trial_keeps_the_faster_of_many_and_one_thread():
 def test_motions_name_the_labels_that_disagree_and_report_progress(monkeypatch, tmp_path):
     import numpy as np
 
-    from interreal import motions
+    from interreal.motions import stage as motions
     from test_motions import _slide_case
 
     truth, states, known, pv = _slide_case(seed=4, wild=0)

@@ -1,6 +1,6 @@
 """A part's per-frame poses without its own reconstruction: triangulate it once, then PnP every frame.
 
-The part's own SfM (`interreal.motions`) must find the camera poses *and* the part's shape from the part's pixels
+The part's own SfM (`motions.stage`) must find the camera poses *and* the part's shape from the part's pixels
 alone; a part with little texture (a grey cabinet door: 9 of 200 frames registered) gives it too little. Here the
 camera poses are already known (transforms.json), so far less is needed:
 1. a reference: a few frames where the part holds one state (frames labelled alike, or the frames nearest a
@@ -8,7 +8,7 @@ camera poses are already known (transforms.json), so far less is needed:
    (the part is static there, so this is plain two-view triangulation in world units, no scale to find);
 2. every frame's masked features are matched to those points and its camera solved relative to the part (PnP
    with RANSAC); with the frame's world camera that is the part's rigid transform from the reference state.
-The result is a `PartViews` with scale 1 that `motion_fit.fit_motion` reads like the reconstruction's.
+The result is a `PartViews` with scale 1 that `fit.fit_motion` reads like the reconstruction's.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .motion_fit import PartViews, part_point
+from .fit import PartViews, part_point
 
 RATIO = 0.8  # Lowe's ratio test
 MAX_REPROJ_PX = 2.0  # a triangulated point must reproject within this in both frames

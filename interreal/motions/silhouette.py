@@ -12,7 +12,7 @@ from its surroundings. Its front is a flat quadrilateral, so:
    moved (the hull of the two), a turned door its turned front;
 3. every frame's displacement is the one whose predicted silhouette overlaps the mask best (IoU), and the
    candidate with the best mean overlap is the motion: the geometry decides hinge or slide, the labels only
-   orient it (`motion_fit.articulate`).
+   orient it (`fit.articulate`).
 `recipes/bench_motions.py` measures it alone and in the stage: on simulated drawers 0.4-1.8 deg and states within
 0.023 where it answers, and it is the only route for seed 6's plain drawer; a door's edge and inside spoil its
 silhouettes (its states 0.14-0.37 off), so the gates and the labels refuse most doors, and the sfm route stays first.
@@ -27,9 +27,9 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .conventions import opengl_to_opencv
-from .dataset import Articulation
-from .motion_fit import Fit, articulate
+from ..conventions import opengl_to_opencv
+from ..dataset import Articulation
+from .fit import Fit, articulate
 
 FACE_PX = 2.0          # the front's corners must reproject within this (median, full-size pixels) ...
 MAX_TILT_DEG = 3.0     # ... and its normal turn less than this when its corners move by their scatter (median

@@ -6,14 +6,14 @@ plain for both, needs no pose: see the end):
 - its own SfM (default first): the part's pixels alone reconstructed with pycolmap, as if it were a scene of its
   own; every frame that reconstruction registers gives the camera relative to the part, and with the camera's pose
   in the world (transforms.json), the part's pose;
-- known-camera PnP (`interreal.motion_pnp`, the fallback, or first with `--route pnp`): the part triangulated once
+- known-camera PnP (`motions.pnp`, the fallback, or first with `--route pnp`): the part triangulated once
   where it rests, with the known cameras, and located in every frame by PnP (seconds, but it needs a stretch where
   the part rests while the camera moves; its reference is the window that triangulates most points, which can be
   one where the part moved slowly).
-When neither gives an accepted motion, the part's silhouettes against the known cameras (`interreal.motion_silhouette`:
+When neither gives an accepted motion, the part's silhouettes against the known cameras (`motions.silhouette`:
 its flat front triangulated from its masks' corners, then the hinge or slide whose predicted silhouettes fit the
 masks) measure every frame's displacement directly.
-`interreal.motion_fit` turns those poses into a hinge or a slide decided by the geometry (does the part turn about
+`motions.fit` turns those poses into a hinge or a slide decided by the geometry (does the part turn about
 one axis, or translate along one line?), measures every registered frame's state from its displacement, and uses
 the labels only to fix the ends and the direction; labels that disagree with the geometry are named as likely
 mistakes. Time is bounded: at most `max_frames` frames of a part are used, and another mapper seed is tried only
@@ -33,19 +33,19 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from . import atomic, provenance
-from .conventions import ARTICULATION_FILE, IMAGES_DIR, opengl_to_opencv
-from .dataset import Articulation, known_states, load_dataset, write_articulation
-from .errors import InputError
-from .layout import MOTIONS_DIR  # DS/motions/<object>/: the part reconstructions
-from .motion_fit import FLAG_TOL, PartViews, fit_motion, part_point
-from .motion_pnp import pnp_views, reference_frames
-from .motion_silhouette import measure_silhouettes
-from .options import add_flags, config_from, option, values_from_args
-from .report import StageReport, finished_with, fingerprint, read_report, warning_lines
-from .sfm import colmap
-from .sfm.colmap import NativeLog
-from .transients import excluded
+from .. import atomic, provenance
+from ..conventions import ARTICULATION_FILE, IMAGES_DIR, opengl_to_opencv
+from ..dataset import Articulation, known_states, load_dataset, write_articulation
+from ..errors import InputError
+from ..layout import MOTIONS_DIR  # DS/motions/<object>/: the part reconstructions
+from ..options import add_flags, config_from, option, values_from_args
+from ..report import StageReport, finished_with, fingerprint, read_report, warning_lines
+from ..sfm import colmap
+from ..sfm.colmap import NativeLog
+from ..transients import excluded
+from .fit import FLAG_TOL, PartViews, fit_motion, part_point
+from .pnp import pnp_views, reference_frames
+from .silhouette import measure_silhouettes
 
 # MotionConfig.route: the route tried first; the others follow, in this order, while no motion is accepted
 ROUTES = ("sfm", "pnp", "silhouette")
@@ -218,13 +218,13 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
                  routes: tuple[str, ...] | None = None) -> tuple[Articulation | None, dict[str, Any]]:
     """The part's motion; states, known (N,) over the dataset's frames, `labelled` (N,) the frames a person
     labelled (default `known`). Two routes to the part's per-frame poses, the same geometric fit after either
-    (`motion_fit.fit_motion`: the geometry decides and measures, the labels orient):
+    (`fit.fit_motion`: the geometry decides and measures, the labels orient):
     - pnp (`measure_part_pnp`): the part triangulated at rest with the known cameras, located by PnP in every frame
       (seconds; needs some texture and a stretch where the part rests);
     - sfm: the part's own reconstruction, mapped with up to `cfg.attempts` seeds on the same matches until a motion
       is accepted (a nearly planar part sometimes comes out bent or with a flipped view); another attempt starts
       only before half of `cfg.budget_s` has passed;
-    - silhouette (`interreal.motion_silhouette`, needs `obj`, the object's index): its masks against the known
+    - silhouette (`motions.silhouette`, needs `obj`, the object's index): its masks against the known
       cameras, for a part too plain for either (seconds).
     `cfg.route` is tried first, the others in `ROUTES` order while none gives an accepted motion (`routes`: only
     these, in this order; a benchmark measures each alone). The best fit is returned (None when no
@@ -307,7 +307,7 @@ def _measure_part_sfm(pc, ds, names: list[str], part: Path, states: np.ndarray, 
 
 def measure_part_pnp(ds, names: list[str], mask_dir: Path, states: np.ndarray, known: np.ndarray,
                      labelled: np.ndarray, cfg: MotionConfig) -> tuple[Articulation | None, dict[str, Any]]:
-    """The other route (`interreal.motion_pnp`): the part triangulated at rest with the known cameras, then
+    """The other route (`motions.pnp`): the part triangulated at rest with the known cameras, then
     located in every frame by PnP; the same geometric fit. (None, figures) when it cannot locate enough frames."""
     by_name = {Path(f.file_path).name: i for i, f in enumerate(ds.frames)}
     positions = sorted(by_name[n] for n in names)

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .dataset import Articulation
+from ..dataset import Articulation
 
 SLIDE_MAX_DEG = 3.0  # a part whose angle spans less than this (or less than TURN_NOISE x its noise) does not turn
 TURN_NOISE = 6.0  # a hinge's angle must span this many times the part's rotation noise

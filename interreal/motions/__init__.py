@@ -1,0 +1,18 @@
+"""`interreal motions`: how each object moves with its state, measured from the video -> DS/articulation.json.
+
+One module per route, one for the decision they share, and the stage that runs them:
+- `stage`: the command (`estimate_motions`), the part's masks, its own SfM (the first route), the routes in turn;
+- `pnp`: the part triangulated where it rests with the known cameras, then located in every frame by PnP;
+- `silhouette`: a part too plain for both: its flat front from its masks, the motion whose silhouettes fit them;
+- `fit`: poses or displacements -> a hinge or a slide decided by the geometry, every frame's state, the labels only
+  orienting it (the ones that disagree flagged).
+A new route is a module here that returns what `fit.articulate` reads.
+"""
+
+from .fit import PartViews, fit_motion
+from .stage import (MotionConfig, add_arguments, estimate_motions, flagged_labels, frame_state_rows, main, measure_part,
+                    part_line, part_masks, part_pairs, part_summary, routes_text)
+
+__all__ = ["MotionConfig", "PartViews", "add_arguments", "estimate_motions", "fit_motion", "flagged_labels",
+           "frame_state_rows", "main", "measure_part", "part_line", "part_masks", "part_pairs", "part_summary",
+           "routes_text"]

@@ -30,7 +30,8 @@ def add_arguments(p) -> None:
   interreal annotate out/ds                 # prints http://127.0.0.1:PORT/?token=... ; open it in a browser
   interreal annotate out/ds --port 8765 --open
 keys on the page: left/right = previous/next frame, p = polygon, b = box, e = erase/paint,
-enter / double-click = close the polygon, escape = cancel the shape, 1-9 = choose object"""
+c = click to segment (click on the object, shift+click or right click on what is not; the mask follows each click),
+enter / double-click = close the polygon, escape = cancel the shape, 1-9 = choose object, ctrl+z = undo"""
 
 
 def main(args) -> int:

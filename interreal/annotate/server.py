@@ -331,6 +331,13 @@ def _edit_routes(app, store: DatasetStore, prop: Propagation) -> None:
         index, versions = store.edit_keyframe(fid, op)
         return _keyframe_json(store, fid, index, versions)
 
+    @app.post("/api/keyframe/{fid}/click")
+    def click_keyframe(fid: str, b: Fields = Depends(body)):
+        op = {"object": b.integer("object"), "name": b.text("name", None), "shape": "clicks",
+              "clicks": b.clicks("clicks"), "versions": b.versions("versions")}
+        index, versions = store.edit_keyframe(fid, op)
+        return _keyframe_json(store, fid, index, versions)
+
     @app.post("/api/keyframe/{fid}/undo")
     def undo_keyframe(fid: str, b: Fields = Depends(body)):
         index, versions = store.undo_keyframe(fid, b.versions("versions"))
@@ -461,6 +468,20 @@ class Fields:
                     and all(finite_number(c) for c in p)):
                 raise InputError(f"{self.where}: {key!r} must be a list of [x, y] pairs of numbers; "
                                  f"found {json.dumps(p)[:40]}")
+        return value
+
+    def clicks(self, key: str) -> list[list[Any]]:
+        """[[x, y, positive], ...]: image pixels and true on the object, false on what is not."""
+        value = self._get(key, _REQUIRED)
+        if not isinstance(value, list):
+            raise self._wrong(key, "a list of [x, y, positive] clicks")
+        if not value:
+            raise InputError(f"{self.where}: no clicks given")
+        for c in value:
+            if not (isinstance(c, list) and len(c) == 3 and all(finite_number(v) for v in c[:2])
+                    and isinstance(c[2], bool)):
+                raise InputError(f"{self.where}: {key!r} must be a list of [x, y, positive] (numbers, numbers, "
+                                 f"true/false); found {json.dumps(c)[:40]}")
         return value
 
     def edits(self, key: str) -> list[dict[str, Any]]:

@@ -34,6 +34,7 @@ from ..masks.labelme import rasterise as rasterise_labelme
 from ..motions import flagged_labels
 from ..report import read_report
 from ..transients import IGNORE, read_transient
+from .clicking import check_object, click_region, parse_clicks, propagated
 from .label_view import BadLabel, Conflict, finite_number, parse_label_edit, split_labels
 from .pixels import encode_index_png, file_version, mask_versions, png_bytes, png_bytes_rgb, read_index_png
 from .pixels import rasterise as rasterise_shape
@@ -396,23 +397,30 @@ class DatasetStore:
         except InputError:
             return None
 
-    def edit_keyframe(self, fid: str, op: dict[str, Any]) -> tuple[np.ndarray, dict[str, str]]:
+    def edit_keyframe(self, fid: str, op: dict[str, Any]) -> tuple[np.ndarray | None, dict[str, str]]:
         """Paint or erase a polygon / box for one object on a keyframe, refusing if an affected object changed.
 
         op = {object: id, name, shape: polygon|box, points: [[x, y], ...] in image pixels, mode: paint|erase,
-        versions: the per-object versions read with the keyframe}. object -1 (`IGNORE_OBJECT`) paints the ignore
-        class (a person, a hand: value 254), which `interreal masks` propagates into the transient layer.
+        versions: the per-object versions read with the keyframe}; or shape clicks, clicks: [[x, y, positive], ...]:
+        the object's pixels become the clicks' answer (`clicking`), other objects' pixels stay. object -1
+        (`IGNORE_OBJECT`) paints the ignore class (a person, a hand: value 254), which `interreal masks` propagates
+        into the transient layer.
         """
         fid = self.fid(fid)
         if self.labelme_path(fid).exists():
             raise InputError(f"frame {fid} is annotated in keyframes/{fid}.json (LabelMe): edit it in LabelMe, "
                              f"or delete that file to draw this keyframe here")
-        w, h = self.image_size(fid)
-        region = self._found_region(fid, op, w, h) if op.get("shape") == "found" else rasterise_shape(op, w, h)
-        mode = op.get("mode", "paint")
-        if mode not in ("paint", "erase"):
+        clicking = op.get("shape") == "clicks"
+        w, h = self._clicked_size(fid) if clicking else self.image_size(fid)
+        if clicking:  # the region is the clicks' answer, computed from the keyframe as read under the lock
+            region, mode = None, "set"
+            parse_clicks(op.get("clicks"), w, h)  # a click outside the frame: 400 before anything is read
+        else:
+            region = self._found_region(fid, op, w, h) if op.get("shape") == "found" else rasterise_shape(op, w, h)
+            mode = op.get("mode", "paint")
+        if mode not in ("paint", "erase", "set"):
             raise InputError(f"mode {str(mode)[:40]!r}: use paint or erase")
-        oid = op.get("object")
+        oid = check_object(op.get("object"), self.read_objects(), IGNORE_OBJECT) if clicking else op.get("object")
         if isinstance(oid, bool) or not isinstance(oid, int):
             raise InputError(f"object {str(oid)[:40]!r} is not an object id (an integer: 0 for the first object)")
         seen = op.get("versions") or {}
@@ -440,11 +448,19 @@ class DatasetStore:
             if changed:
                 raise Conflict(f"the mask of {', '.join(map(repr, changed))} on frame {fid} was changed elsewhere since "
                                f"this page read it; your stroke was not saved: look at the new mask and draw it again")
+            if clicking:
+                region = click_region(index, k, op, lambda: self._rgb(self.image_file(fid)),
+                                      lambda: propagated(self.ds, fid, oid, IGNORE_OBJECT, (h, w)))
+                if not region.any() and not path.exists():
+                    return None, {}  # nothing asked for on a frame without a keyframe: no keyframe of background
             before = path.read_bytes() if path.exists() else None
             if mode == "paint":
                 index[region] = k
-            else:
+            elif mode == "erase":
                 index[region & (index == k)] = 0
+            else:  # set (clicks): the object is the region; other objects' pixels are not in it and stay
+                index[(index == k) & ~region] = 0
+                index[region] = k
             self._ensure_keyframe_mapping(mapping)
             atomic.write_bytes(path, png_bytes(index))
             after = mask_versions(index)
@@ -452,6 +468,13 @@ class DatasetStore:
             stack.append((before, after))
             del stack[:-UNDO_DEPTH]
             return index, after
+
+    def _clicked_size(self, fid: str) -> tuple[int, int]:
+        """(w, h) of a frame clicked on; a frame of the dataset without an image is an InputError (HTTP 400)."""
+        try:
+            return self.image_size(fid)
+        except UnknownFrame:
+            raise InputError(f"frame {self.fid(fid)} has no image in {IMAGES_DIR}/: there is nothing to click on") from None
 
     def _found_region(self, fid: str, op: dict[str, Any], w: int, h: int) -> np.ndarray:
         """The part of the frame's transient layer (a hand or arm `--transients auto` found, or the propagated ignore

@@ -15,6 +15,7 @@ const S = {
   kf: null,          // {fid, versions, index: Uint8Array | null}
   mask: null,        // {fid, index: Uint8Array} propagated mask of the current frame
   w: 0, h: 0, pts: [], drag: null, sliding: false, loadSeq: 0, polling: null,
+  clicks: null,      // the click tool's session: {fid, obj, list: [[x, y, positive], ...]}; the server is stateless
 };
 const $ = (id) => document.getElementById(id);
 // the ignore class (people, hands: value 254 in a keyframe PNG, the transient layer once propagated) is grey
@@ -135,7 +136,7 @@ async function goto(i) {
   if (!S.frames.length) return;
   i = Math.max(0, Math.min(S.frames.length - 1, i));
   S.cur = i;
-  S.pts = []; S.drag = null;
+  S.pts = []; S.drag = null; S.clicks = null;
   const f = cur();
   history.replaceState(null, "", location.pathname + location.search + "#f=" + f.fid);
   $("frame-slider").value = i;
@@ -271,6 +272,17 @@ function renderDraw(mouse) {
     ctx.stroke();
     for (const p of S.pts) { ctx.fillStyle = col; ctx.fillRect(p[0] - 2 * lw, p[1] - 2 * lw, 4 * lw, 4 * lw); }
   }
+  if (S.tool === "click" && sessionClicks().length) {
+    ctx.setLineDash([]);
+    for (const [x, y, positive] of sessionClicks()) {
+      ctx.beginPath();
+      ctx.arc(x, y, 4 * lw, 0, 2 * Math.PI);
+      ctx.fillStyle = positive ? "#35c46a" : "#ff5a5a";
+      ctx.fill();
+      ctx.strokeStyle = "#ffffff";
+      ctx.stroke();
+    }
+  }
   if (S.tool === "box" && S.drag) {
     const [x0, y0] = S.drag.from, [x1, y1] = S.drag.to;
     ctx.fillRect(Math.min(x0, x1), Math.min(y0, y1), Math.abs(x1 - x0), Math.abs(y1 - y0));
@@ -304,12 +316,46 @@ async function submitShape(shape, points) {
     if (mine) S.kf.versions = r.versions;  // at once: the next queued stroke is based on this one
     return r;
   });
+  await showKeyframe(f, res);
+}
+
+// The keyframe as an edit answered it (the answer of a frame left meanwhile is not shown)
+async function showKeyframe(f, res) {
   if (!res || cur().fid !== f.fid) return;
   S.kf = { fid: f.fid, versions: res.versions, index: res.png ? await decodeIndex(res.png, S.w, S.h) : null };
   S.keyframes = res.keyframes;
   renderOverlay();
   renderLists();
   renderThumbMarks();
+}
+
+// ------------------------------------------------------------------------------------------------ click tool
+// Left click: on the object; shift+click or right click: not the object. Each click sends the whole session
+// (this frame, this object) and the server answers the object's new mask on the keyframe.
+function sessionClicks() {
+  const o = selected(), f = cur();
+  if (!S.clicks || !o || !f || S.clicks.fid !== f.fid || S.clicks.obj !== o.id) return [];
+  return S.clicks.list;
+}
+
+async function addClick(p, positive) {
+  const o = selected();
+  if (!o) { toast("Add an object first (right panel), then click on it."); return; }
+  const f = cur();
+  if (!sessionClicks().length) S.clicks = { fid: f.fid, obj: o.id, list: [] };
+  const list = S.clicks.list;
+  const click = [Math.min(p[0], S.w - 0.5), Math.min(p[1], S.h - 0.5), positive];
+  list.push(click);
+  const clicks = list.slice();
+  renderDraw();
+  const res = await edit("segmenting from the clicks", async () => {
+    const mine = S.kf && S.kf.fid === f.fid;
+    const r = await api(`/api/keyframe/${f.fid}/click`, { object: o.id, name: o.name, clicks, versions: mine ? S.kf.versions : {} });
+    if (mine) S.kf.versions = r.versions;
+    return r;
+  });
+  if (!res && list.includes(click)) { list.splice(list.indexOf(click), 1); renderDraw(); return; }
+  await showKeyframe(f, res);
 }
 
 async function undoStroke() {
@@ -320,10 +366,8 @@ async function undoStroke() {
     if (S.kf && S.kf.fid === f.fid) S.kf.versions = r.versions;
     return r;
   });
-  if (!res || cur().fid !== f.fid) return;
-  S.kf = { fid: f.fid, versions: res.versions, index: res.png ? await decodeIndex(res.png, S.w, S.h) : null };
-  S.keyframes = res.keyframes;
-  renderOverlay(); renderLists(); renderThumbMarks();
+  if (res && S.tool === "click") { sessionClicks().pop(); renderDraw(); }  // the click that stroke answered
+  await showKeyframe(f, res);
 }
 
 function closePolygon() {
@@ -356,11 +400,17 @@ function setupDrawing() {
   });
   c.addEventListener("click", (ev) => {
     if (S.tool === "found") { submitShape("found", [imagePoint(ev)]); return; }
+    if (S.tool === "click") { addClick(imagePoint(ev), !ev.shiftKey); return; }
     if (S.tool !== "polygon") return;
     const p = imagePoint(ev);
     if (S.pts.length >= 3 && screenDist(p, S.pts[0]) < 8) { closePolygon(); return; }
     S.pts.push(p);
     renderDraw(p);
+  });
+  c.addEventListener("contextmenu", (ev) => {
+    if (S.tool !== "click") return;
+    ev.preventDefault();
+    addClick(imagePoint(ev), false);
   });
   c.addEventListener("dblclick", (ev) => { ev.preventDefault(); if (S.tool === "polygon") closePolygon(); });
   $("close-polygon").addEventListener("click", closePolygon);
@@ -381,7 +431,7 @@ function setupDrawing() {
 }
 
 function setTool(t) {
-  S.tool = t; S.pts = []; S.drag = null;
+  S.tool = t; S.pts = []; S.drag = null; S.clicks = null;
   document.querySelectorAll(".tool").forEach((b) => b.classList.toggle("active", b.dataset.tool === t));
   $("close-polygon").disabled = t !== "polygon";
   renderDraw();
@@ -672,6 +722,7 @@ function setupKeys() {
     else if (ev.key === "p") setTool("polygon");
     else if (ev.key === "b") setTool("box");
     else if (ev.key === "f") setTool("found");
+    else if (ev.key === "c") setTool("click");
     else if (ev.key === "e") setMode(S.mode === "erase" ? "paint" : "erase");
     else if (ev.key === "Enter" && S.tool === "polygon" && S.pts.length) { ev.preventDefault(); closePolygon(); }
     else if (ev.key === "Escape") { S.pts = []; S.drag = null; renderDraw(); }

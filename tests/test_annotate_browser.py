@@ -304,3 +304,63 @@ def test_a_label_the_geometry_disagrees_with_is_fixed_in_one_click(browser, tmp_
         page.close()
     finally:
         srv.stop()
+
+
+def test_click_to_segment_follows_each_click(browser, tmp_path):
+    """The click tool (c): a click on the object gives its mask, a shift+click on the look-alike box touching it
+    takes the box out, a right click is negative too, ctrl+z takes the last click back; a reload shows the mask."""
+    from test_clicks import iou, scene
+
+    from interreal.annotate.server import AnnotateServer
+    from interreal.annotate.store import _read_index_png
+    from interreal.dataset import write_mapping
+
+    ds = tmp_path / "ds"
+    img, obj, box = scene(0, distractor=True)
+    write_image(ds / "images" / "frame_00000.png", img)
+    write_mapping(ds, {0: "lid"})
+    srv = AnnotateServer(ds, port=0).start()
+    try:
+        ctx = browser.new_context(viewport={"width": 1200, "height": 800})
+        page = ctx.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(srv.url)
+        ready(page)
+        page.wait_for_selector('.obj[data-object="lid"]')
+        page.locator("#draw-canvas").focus()
+        page.keyboard.press("c")
+        assert "active" in page.get_attribute("#tool-click", "class")
+        bb = page.locator("#draw-canvas").bounding_box()
+        sx, sy = bb["width"] / img.shape[1], bb["height"] / img.shape[0]
+        at = lambda x, y: (bb["x"] + (x + 0.5) * sx, bb["y"] + (y + 0.5) * sy)  # noqa: E731
+        path = ds / "keyframes" / "00000.png"
+
+        n = saves(page)
+        page.mouse.click(*at(60, 60))
+        saved(page, n)
+        first = _read_index_png(path) == 1
+        assert (first & box).sum() > 0.3 * box.sum()  # the look-alike box is taken with the ellipse ...
+        n = saves(page)
+        page.keyboard.down("Shift")
+        page.mouse.click(*at(115, 60))
+        page.keyboard.up("Shift")
+        saved(page, n)
+        second = _read_index_png(path) == 1
+        assert iou(second, obj) >= 0.9 and (second & box).sum() < 0.05 * box.sum()  # ... and a shift+click removes it
+        n = saves(page)
+        page.mouse.click(*at(20, 20), button="right")  # negative, on the background: the mask stays right
+        saved(page, n)
+        assert iou(_read_index_png(path) == 1, obj) >= 0.9
+        n = saves(page)
+        page.keyboard.press("Control+z")
+        saved(page, n)
+        assert (_read_index_png(path) == 1).sum() == second.sum()
+        page.reload()
+        ready(page)
+        page.wait_for_timeout(300)
+        assert overlay_pixels(page) > 0.8 * obj.sum()
+        assert not errors, errors
+        ctx.close()
+    finally:
+        srv.stop()

@@ -21,6 +21,11 @@ paste into interreal/masks/health.py; they were fit with `--variants ours,ours-f
 
     python recipes/bench_masks.py --quick --out bench/
     python recipes/bench_masks.py --out bench/
+
+`--clicks`: the annotation effort in clicks instead (`recipes/bench_clicks.py`: a simulated user, NoC@85 / NoC@90 on
+every 10th DAVIS frame and the laptop fixtures; `--video-rounds N`: the clicks to a whole video) -> masks_clicks.json.
+
+    python recipes/bench_masks.py --clicks --video-rounds 8 --out bench/
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from bench_clicks import main_clicks
 from benchlib import REPO, bench_args, print_table, scatter_chart, write_results
 
 from interreal import atomic
@@ -265,8 +271,15 @@ def main() -> int:
                        f"on the two protocols (default ours; all: {','.join(VARIANTS)})")
         p.add_argument("--only", default="", help="comma-separated DAVIS sequences (default: every one present)")
         p.add_argument("--fit", action="store_true", help="print the health model's weights refit on every run")
+        p.add_argument("--clicks", action="store_true", help="the annotation effort in clicks (bench_clicks.py)")
+        p.add_argument("--video-rounds", type=int, default=0, metavar="N",
+                       help="with --clicks: clicks to a whole video, at most N keyframes a sequence (0: skip)")
+        p.add_argument("--video-budget", type=int, default=200, help="with --clicks: at most this many clicks a video")
     args = bench_args("masks", __doc__.splitlines()[0], extra)
     cv2.setNumThreads(THREADS)
+    if args.clicks:
+        return main_clicks(args, davis_sequences, davis_dataset, run_command, frame_j, REPO / "tests" / "fixtures" /
+                           "laptop" / "keyframes")
     work = args.out / "_masks_work"
     limit = 20 if args.quick else None
     vs = list(VARIANTS) if args.variants == "all" else args.variants.split(",")

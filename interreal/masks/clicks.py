@@ -28,8 +28,8 @@ ROI_MARGIN = 0.4         # the cut's box: the prior's and the positive clicks' b
 ROI_MIN = 24             # px, and by at least this much
 HARD = 0.4               # within this share of the reach a click's neighbourhood is certain, not probable
 FIRST_REACH = 2.0        # without a prior: the first guess stops this many reaches from the positive clicks
-EDGE_WEIGHT = 8.0        # how much a colour edge lengthens a geodesic path (per unit of Lab gradient / median)
-ITERATIONS = 3           # GrabCut's iterations (each re-learns the colour models)
+EDGE_WEIGHT = 3.0        # how much a colour edge lengthens a geodesic path (per unit of Lab gradient / median)
+ITERATIONS = 2           # GrabCut's iterations (each re-learns the colour models)
 GUIDE_RADIUS = 4         # px at full size: the guided filter that snaps the upscaled mask to the image's edges
 GUIDE_EPS = 0.01         # its regularisation (image in [0, 1]): lower follows weaker edges
 
@@ -132,14 +132,18 @@ def _first_guess(rgb: np.ndarray, clicks: list[Click], work_size: int) -> np.nda
 
 
 def _roi(prior: np.ndarray, clicks: list[Click], w: int, h: int, reach: float) -> tuple[int, int, int, int]:
-    """(x0, y0, x1, y1): the box of the prior and of each positive click's reach, grown by ROI_MARGIN of its size on
-    each side: the cut is made there, at up to full resolution, with a background model of the object's
-    surroundings."""
+    """(x0, y0, x1, y1): the box of the prior, of each positive click's reach and of the negative clicks near them,
+    grown by ROI_MARGIN of its size on each side: the cut is made there, at up to full resolution, with a background
+    model of the object's surroundings."""
     ys, xs = np.nonzero(prior)
     pos = [c for c in clicks if c.positive]
     px = [c.x + d for c in pos for d in (-reach, reach)] + ([xs.min(), xs.max()] if xs.size else [])
     py = [c.y + d for c in pos for d in (-reach, reach)] + ([ys.min(), ys.max()] if ys.size else [])
     bx0, bx1, by0, by1 = min(px), max(px) + 1, min(py), max(py) + 1
+    # a negative click near the box is in it: left out, the look-alike it took away would come back at its edge
+    near = [c for c in clicks if not c.positive and bx0 - reach <= c.x < bx1 + reach and by0 - reach <= c.y < by1 + reach]
+    bx0, bx1 = min([bx0] + [c.x for c in near]), max([bx1] + [c.x + 1 for c in near])
+    by0, by1 = min([by0] + [c.y for c in near]), max([by1] + [c.y + 1 for c in near])
     mx = max(ROI_MIN, ROI_MARGIN * (bx1 - bx0), ROI_MARGIN * (by1 - by0))
     return (max(0, int(bx0 - mx)), max(0, int(by0 - mx)), min(w, int(np.ceil(bx1 + mx))), min(h, int(np.ceil(by1 + mx))))
 

@@ -114,6 +114,17 @@ BODIES = [
     ("/api/keyframe/00003", json.dumps(_box(versions={"1": 5})).encode(), 400, "'versions' must be"),
     ("/api/keyframe/00003", json.dumps({"object": 0}).encode(), 400, "'points' is missing"),
     ("/api/keyframe/00003", json.dumps(_box(name=3)).encode(), 400, "'name' must be a string"),
+    # the click tool: a click outside the 64x48 frame, an object that does not exist, malformed clicks
+    ("/api/keyframe/00003/click", b'{"object": 0, "clicks": [[64, 5, true]]}', 400, "outside the 64x48 image"),
+    ("/api/keyframe/00003/click", b'{"object": 0, "clicks": [[3, -0.5, false]]}', 400, "click 1 at (3, -0.5)"),
+    ("/api/keyframe/00003/click", b'{"object": 3, "clicks": [[3, 3, true]]}', 400, "object id 3 does not exist"),
+    ("/api/keyframe/00003/click", b'{"object": -2, "clicks": [[3, 3, true]]}', 400, "object id -2 does not exist"),
+    ("/api/keyframe/00003/click", b'{"object": 0, "clicks": [[3, NaN, true]]}', 400, "NaN"),
+    ("/api/keyframe/00003/click", b'{"object": 0, "clicks": [[3, 3, 1]]}', 400, "[x, y, positive]"),
+    ("/api/keyframe/00003/click", b'{"object": 0, "clicks": [[3, 3, true]], "versions": 1}', 400, "'versions' must"),
+    ("/api/keyframe/00003/click", json.dumps({"object": 0, "clicks": [[3, 3, True]] * 201}).encode(), 400,
+     "at most 200"),
+    ("/api/keyframe/00003/click", b'{"object": 0}', 400, "'clicks' is missing"),
     ("/api/keyframe/00003/undo", b'{"versions": [1]}', 400, "'versions' must be"),
     ("/api/keyframe/00003/delete", b'{"versions": "x"}', 400, "'versions' must be"),
     ("/api/keyframe/00003/delete", b"null", 400, "must be a JSON object"),
@@ -142,6 +153,7 @@ PATHS = [
     ("POST", "/api/keyframe/\u0660\u0660\u0660\u0660\u0663"),
     ("POST", "/api/keyframe/\u00b2/undo"),
     ("POST", "/api/keyframe/abc/delete"),
+    ("POST", "/api/keyframe/42/click"),
 ]
 
 

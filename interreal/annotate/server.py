@@ -333,6 +333,7 @@ def _edit_routes(app, store: DatasetStore, prop: Propagation) -> None:
 
     @app.post("/api/keyframe/{fid}/click")
     def click_keyframe(fid: str, b: Fields = Depends(body)):
+        store.fid(fid)  # an unknown frame is a 404 whatever the body says
         op = {"object": b.integer("object"), "name": b.text("name", None), "shape": "clicks",
               "clicks": b.clicks("clicks"), "versions": b.versions("versions")}
         index, versions = store.edit_keyframe(fid, op)

@@ -135,3 +135,15 @@ def test_the_simulated_user_reaches_iou_90_on_the_synthetic_scene_in_few_clicks(
     img, obj, _ = scene(0, distractor=True)
     r = click_frame(img, obj, max_clicks=10, stop_at=0.9)
     assert r["noc90"] <= 3 and r["ious"][-1] >= 0.9
+
+
+@pytest.mark.parametrize("size", [(2, 2), (3, 7), (9, 9), (1, 40)])
+def test_tiny_and_flat_images_give_a_mask_not_an_error(size):
+    img = np.full(size + (3,), 128, np.uint8)
+    if min(size) < 2:
+        with pytest.raises(InputError, match="uint8 RGB"):
+            segment(img, [(0, 0, True)])
+        return
+    mask = segment(img, [(0, 0, True)])
+    assert mask.shape == size and mask[0, 0]
+    assert not segment(img, [(0, 0, True), (size[1] - 1, size[0] - 1, False)])[-1, -1]

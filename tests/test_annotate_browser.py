@@ -330,7 +330,7 @@ def test_click_to_segment_follows_each_click(browser, tmp_path):
         page.wait_for_selector('.obj[data-object="lid"]')
         page.locator("#draw-canvas").focus()
         page.keyboard.press("c")
-        assert "active" in page.get_attribute("#tool-click", "class")
+        assert "active" in page.get_attribute("#tool-click", "class") and "shift+click" in page.inner_text("#hint")
         bb = page.locator("#draw-canvas").bounding_box()
         sx, sy = bb["width"] / img.shape[1], bb["height"] / img.shape[0]
         at = lambda x, y: (bb["x"] + (x + 0.5) * sx, bb["y"] + (y + 0.5) * sy)  # noqa: E731

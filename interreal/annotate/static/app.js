@@ -433,6 +433,9 @@ function setupDrawing() {
 function setTool(t) {
   S.tool = t; S.pts = []; S.drag = null; S.clicks = null;
   document.querySelectorAll(".tool").forEach((b) => b.classList.toggle("active", b.dataset.tool === t));
+  $("hint").textContent = t === "click"
+    ? "Click on the object; shift+click or right click on what is not. Each click refines its mask (ctrl+z takes one back)."
+    : "Draw every object visible on a keyframe: pixels not drawn count as background.";
   $("close-polygon").disabled = t !== "polygon";
   renderDraw();
 }

@@ -262,9 +262,9 @@ class Silhouettes:
     """Each frame's mask at most `SIDE` large, cropped to the part with a margin: the overlap of a predicted
     silhouette is counted in the crop only (a part is a small share of the image)."""
 
-    def __init__(self, views: Views, frames: list[int]):
+    def __init__(self, views: Views, frames: list[int], side: int = SIDE):
         h, w = views.masks[0].shape
-        self.scale = min(1.0, SIDE / max(h, w))
+        self.scale = min(1.0, side / max(h, w))
         self.k = views.K.copy()
         self.k[:2] *= self.scale
         self.dist = np.zeros(5) if views.dist is None else np.asarray(views.dist, float)

@@ -12,7 +12,8 @@ plain for both, needs no pose: see the end):
   one where the part moved slowly).
 When neither gives an accepted motion, the part's silhouettes against the known cameras (`motions.silhouette`:
 its flat front triangulated from its masks' corners, then the hinge or slide whose predicted silhouettes fit the
-masks) measure every frame's displacement directly.
+masks) measure every frame's displacement directly, and for a plain door cut by the image border, the one straight
+edge of its outline that stays put is its hinge (`motions.edge`).
 `motions.fit` turns those poses into a hinge or a slide decided by the geometry (does the part turn about
 one axis, or translate along one line?), measures every registered frame's state from its displacement, and uses
 the labels only to fix the ends and the direction; labels that disagree with the geometry are named as likely
@@ -37,7 +38,7 @@ from .. import atomic, provenance
 from ..conventions import ARTICULATION_FILE, IMAGES_DIR, opengl_to_opencv
 from ..dataset import Articulation, known_states, load_dataset, write_articulation
 from ..errors import InputError
-from ..layout import MOTIONS_DIR  # DS/motions/<object>/: the part reconstructions
+from ..layout import KEYFRAMES_DIR, MOTIONS_DIR  # DS/motions/<object>/: the part reconstructions
 from ..options import add_flags, config_from, option, values_from_args
 from ..report import StageReport, finished_with, fingerprint, read_report, warning_lines
 from ..sfm import colmap
@@ -45,10 +46,11 @@ from ..sfm.colmap import NativeLog
 from ..transients import excluded
 from .fit import FLAG_TOL, PartViews, fit_motion, part_point
 from .pnp import pnp_views, reference_frames
+from .edge import measure_edge
 from .silhouette import measure_silhouettes
 
 # MotionConfig.route: the route tried first; the others follow, in this order, while no motion is accepted
-ROUTES = ("sfm", "pnp", "silhouette")
+ROUTES = ("sfm", "pnp", "silhouette", "edge")
 PNP_LONG_SIDE = 800  # the PnP route reads the images at most this large
 MAX_STATE_RMSE = 0.1  # an accepted motion's labels within this RMSE: no retry with another mapper seed
 __all__ = ["PartViews", "fit_motion", "estimate_motions", "measure_part", "MotionConfig"]
@@ -71,8 +73,9 @@ class MotionConfig:
     budget_s: float = 110.0  # another mapper attempt starts only before half of this has passed
     route: str = option("sfm", "the route tried first (the others when it gives no accepted motion): sfm (the "
                                "part's own SfM), pnp (known-camera PnP: seconds, needs a stretch where the part "
-                               "rests) or silhouette (its masks against the known cameras: for a plain part with "
-                               "a flat front)", choices=ROUTES)
+                               "rests), silhouette (its masks against the known cameras: for a plain part with "
+                               "a flat front whose corners show) or edge (a plain door or lid cut by the image "
+                               "border: the static edge of its keyframes' outlines as the hinge)", choices=ROUTES)
     trust_labels: bool = option(False, "let the state labels calibrate each motion and refuse it when most of them "
                                        "disagree (default: the geometry measures every frame's state, the labels "
                                        "only say which end is closed, and a label that disagrees is reported)")
@@ -225,7 +228,9 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
       is accepted (a nearly planar part sometimes comes out bent or with a flipped view); another attempt starts
       only before half of `cfg.budget_s` has passed;
     - silhouette (`motions.silhouette`, needs `obj`, the object's index): its masks against the known
-      cameras, for a part too plain for either (seconds).
+      cameras, for a part too plain for either (seconds);
+    - edge (`motions.edge`, needs `obj`): a plain door or lid whose corners no view shows: the static edge of its
+      keyframes' outlines as the hinge, the leaf fitted to every mask (tens of seconds).
     `cfg.route` is tried first, the others in `ROUTES` order while none gives an accepted motion (`routes`: only
     these, in this order; a benchmark measures each alone). The best fit is returned (None when no
     route registered enough frames with a known state).
@@ -248,12 +253,18 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
                 continue
             step("silhouettes")
             motion, fig = measure_silhouettes(ds, obj, states, known, labelled, cfg.min_pixels, cfg.trust_labels)
+        elif route == "edge":
+            if obj is None:
+                continue
+            step("static edge")
+            motion, fig = measure_edge(ds, obj, states, known, labelled, keyframe_positions(ds), cfg.min_pixels,
+                                       cfg.trust_labels)
         else:
             motion, fig = _measure_part_sfm(pc, ds, names, part, states, known, labelled, cfg, step, start)
         fig.setdefault("route", route)
         tried[route] = {"registered": fig.get("registered", 0), "kind": None if motion is None else motion.kind,
                         "accepted": bool(fig.get("accepted")),
-                        "reason": fig.get("reason") or fig.get("silhouette_reason")
+                        "reason": fig.get("reason") or fig.get("silhouette_reason") or fig.get("edge_reason")
                         or ("" if fig.get("accepted") else "gave no motion (no reason recorded)"),
                         "seconds": round(time.monotonic() - t0, 1)}
         if motion is not None and (best[0] is None or _better(fig, best[1])):
@@ -265,6 +276,17 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
     best[1].update({f"{r}_registered": v["registered"] for r, v in tried.items()})
     best[1]["seconds"] = round(time.monotonic() - start, 1)
     return best
+
+
+def keyframe_positions(ds) -> list[int]:
+    """Dataset positions of the frames whose masks a person drew (the masks stage's keyframes; the annotate app's
+    `keyframes/` when that report is absent): the exact outlines the edge route lifts its hinge from."""
+    fids = [f.fid for f in ds.frames]
+    listed = ((read_report(ds.root, "masks") or {}).get("inputs") or {}).get("keyframes") or {}
+    if not listed and (ds.root / KEYFRAMES_DIR).is_dir():
+        listed = {p.stem: p.name for p in (ds.root / KEYFRAMES_DIR).iterdir() if p.suffix in (".png", ".json")}
+    at = {fid: i for i, fid in enumerate(fids)}
+    return sorted(at[k] for k in listed if k in at)
 
 
 def _measure_part_sfm(pc, ds, names: list[str], part: Path, states: np.ndarray, known: np.ndarray,

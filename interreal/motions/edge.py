@@ -1,0 +1,389 @@
+"""A plain door or lid: its hinge as the edge of its outline that stays put, its leaf fitted to every frame's mask.
+
+The corners route (`silhouette`) needs the front's four corners in some views; a tall door filmed from close by is
+cut by the image border in every frame, and a plain one gives SfM and PnP nothing to match. What its masks do show
+is its outline, and one straight stretch of it stays in one place in the world whatever the state: the hinge edge.
+1. `static_line`: each straight stretch of a keyframe's outline (keyframe masks are the person's, not propagated)
+   is lifted to the 3D line whose projection lies on the outlines of the other keyframes and of most frames (its two
+   depths searched; the best `KEEP` share of the frames count: bad masks, a hand in front); the stretch that fits
+   best is the hinge, the free edge scoring far worse (on a simulated fridge door with its true masks: 0.5 deg off
+   the true axis, 1.7 % of the scene off its position; the free edge 5.0 px against 1.4);
+2. `fit_leaf`: the door is a rectangle hinged on that line, `width` wide and spanning [h0, h1] along it, turned by
+   its own angle in each frame: the three sizes are those whose best silhouettes overlap the masks most on average
+   (Nelder-Mead from a grid), then every frame's angle by dynamic programming over the frames in time order (a door
+   turns smoothly: a frame whose mask lost the door follows its neighbours, not a guess from that mask);
+3. the angles are the displacement `fit.articulate` reads: the geometry measures, the labels only orient.
+Its limits: a drawer (nothing of it stays put) is left to the other routes, and with propagated masks that leave the
+hinge edge on most frames the line is not found (docs/measurements.md, 2026-12-05).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy.optimize import minimize
+
+from ..conventions import opengl_to_opencv
+from ..dataset import Articulation
+from .fit import Fit, articulate
+from .silhouette import Silhouettes, Views
+
+SIDE = 480            # outlines and final silhouettes are compared at most this large (long side) ...
+SEARCH_SIDE = 240     # ... the leaf's size is searched on silhouettes this large
+TRUNC_PX = 12.0       # an outline further than this (work-size px) from a projected point counts as this far
+KEEP = 0.6            # the share of frames (best first) a candidate line is judged on: masks fail, hands cover
+SEGMENT_SHARE = 0.1   # straight stretches of an outline at least this share of the image diagonal
+MAX_LINE_PX = 3.0     # a hinge line further than this (work size, mean over the frames kept) from the outlines: none
+ANGLES = 144          # angle grid of a frame's search (2.5 deg), refined by a parabola
+SMOOTH = 0.01         # overlap given up per degree the leaf turns between neighbouring frames (dynamic programming)
+STILL = 10.0          # ... this many times more between frames the labels say rest at one state
+MIN_FRAME_IOU = 0.7   # a frame whose best silhouette overlaps its mask less than this is not measured
+LINE_DRIFT_PX = 1.0   # the hinge line may sit this much further from the outlines where the leaf turned most
+MAX_OUTLINE_PX = 3.0  # the turning leaf's outline within this of the masks' (median over frames, work-size px) ...
+OUTLINE_MARGIN = 0.5  # ... and this much closer than a slide's of the same front: a drawer's outline has static
+#                       edges as well (on simulated captures with true masks: doors 0.7-2.8 px, 1.0-2.4 closer than
+#                       a slide; drawers 3.3-4.8 px)
+MIN_KEY_IOU = 0.8     # the keyframes' masks (exact) must be explained this well on average (a door's edge seen side
+#                       on widens its mask beyond its front's: 0.76 on one simulated keyframe with its true masks)
+
+
+@dataclass
+class Line:
+    """A 3D segment P -> Q (world), its mean outline distance (px) over the frames kept, and the keyframe it came
+    from."""
+
+    p: np.ndarray
+    q: np.ndarray
+    cost: float
+    key: int
+
+    @property
+    def axis(self) -> np.ndarray:
+        d = self.q - self.p
+        return d / np.linalg.norm(d)
+
+
+class Outlines:
+    """Per frame: the distance (work-size px, at most `TRUNC_PX`) to its mask's outline away from the image border
+    (a mask cut by the border shows no edge of the part there), stacked to project points into every frame at once."""
+
+    def __init__(self, views: Views, frames: list[int]):
+        h, w = views.masks[frames[0]].shape
+        scale = min(1.0, SIDE / max(h, w))
+        self.k = views.K.copy()
+        self.k[:2] *= scale
+        self.dist = np.zeros(5) if views.dist is None else np.asarray(views.dist, float)
+        self.size = (int(round(w * scale)), int(round(h * scale)))
+        maps, kept = [], []
+        for i in frames:
+            m = cv2.resize(views.masks[i].astype(np.uint8), self.size, interpolation=cv2.INTER_AREA)
+            edge = cv2.morphologyEx(m, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
+            edge[:2], edge[-2:], edge[:, :2], edge[:, -2:] = False, False, False, False
+            if edge.sum() >= 10:
+                maps.append(np.minimum(cv2.distanceTransform((~edge).astype(np.uint8), cv2.DIST_L2, 3), TRUNC_PX))
+                kept.append(i)
+        self.frames = kept
+        self.at = {i: n for n, i in enumerate(kept)}
+        self.dt = np.stack(maps) if maps else np.zeros((0, self.size[1], self.size[0]), np.float32)
+        self.w2c = views.w2c[kept] if kept else np.zeros((0, 4, 4))
+
+    def distances(self, pts: np.ndarray) -> np.ndarray:
+        """(F,) mean outline distance of the points' (P, 3) projections in each frame; NaN where fewer than half
+        land inside the image or any lies behind the camera."""
+        cam = np.einsum("fij,pj->fpi", self.w2c[:, :3, :3], pts) + self.w2c[:, None, :3, 3]
+        z = cam[..., 2]
+        x, y = cam[..., 0] / np.maximum(z, 1e-9), cam[..., 1] / np.maximum(z, 1e-9)
+        k1, k2, p1, p2 = self.dist[:4]
+        k3 = self.dist[4] if len(self.dist) > 4 else 0.0
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        u = self.k[0, 0] * xd + self.k[0, 2]
+        v = self.k[1, 1] * yd + self.k[1, 2]
+        w, h = self.size
+        inside = (u >= 2) & (u < w - 2) & (v >= 2) & (v < h - 2) & (z > 1e-6)
+        f = np.broadcast_to(np.arange(len(self.frames))[:, None], u.shape)
+        vals = np.where(inside, self.dt[f, np.clip(v, 0, h - 1).astype(int), np.clip(u, 0, w - 1).astype(int)], 0.0)
+        n = inside.sum(1)
+        good = (n >= 0.5 * pts.shape[0]) & (z > 1e-6).all(1)
+        return np.where(good, vals.sum(1) / np.maximum(n, 1), np.nan)
+
+
+    def hull_distance(self, pts: np.ndarray, i: int) -> float | None:
+        """Mean distance (work-size px) from the outline of the points' projected hull in frame i to its mask's
+        outline, over the hull's samples inside the image; None when fewer than 10 are."""
+        n = self.at.get(i)
+        if n is None or ((pts @ self.w2c[n][2, :3] + self.w2c[n][2, 3]) <= 1e-6).any():
+            return None
+        uv, _ = cv2.projectPoints(pts, cv2.Rodrigues(self.w2c[n][:3, :3])[0], self.w2c[n][:3, 3], self.k, self.dist)
+        hull = cv2.convexHull(uv.reshape(-1, 2).astype(np.float32)).reshape(-1, 2)
+        along = np.linspace(0.0, 1.0, 20, endpoint=False)[:, None]
+        samples = np.concatenate([a + along * (b - a) for a, b in zip(hull, np.roll(hull, -1, 0))])
+        w, h = self.size
+        inside = (samples[:, 0] >= 3) & (samples[:, 0] < w - 3) & (samples[:, 1] >= 3) & (samples[:, 1] < h - 3)
+        if inside.sum() < 10:
+            return None
+        s = samples[inside].astype(int)
+        return float(self.dt[n][s[:, 1], s[:, 0]].mean())
+
+
+def segments(mask: np.ndarray, min_len: float) -> list[np.ndarray]:
+    """Straight stretches (2, 2) of the mask's outline at least `min_len` px long, none along the image border."""
+    m = mask.astype(np.uint8)
+    h, w = m.shape
+    contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+
+    def on_border(z: np.ndarray) -> bool:
+        return min(z[0], z[1], w - 1 - z[0], h - 1 - z[1]) < 3
+
+    out = []
+    for c in contours:
+        if cv2.contourArea(c) < 0.01 * h * w:
+            continue
+        poly = cv2.approxPolyDP(c, 0.01 * cv2.arcLength(c, True), True).reshape(-1, 2).astype(float)
+        for k in range(len(poly)):
+            p, q = poly[k], poly[(k + 1) % len(poly)]
+            if np.linalg.norm(q - p) >= min_len and not (on_border(p) and on_border(q) and on_border((p + q) / 2)):
+                out.append(np.array([p, q]))
+    return out
+
+
+def static_line(out: Outlines, views: Views, key: int, seg: np.ndarray, keys: list[int], scale: float) -> Line:
+    """The 3D line through keyframe `key`'s outline stretch `seg` that lies on the outlines of the other keyframes
+    and of the best `KEEP` of the frames: its two end depths searched on a grid, then refined."""
+    c2w = np.linalg.inv(views.w2c[key])
+    und = cv2.undistortPoints(seg.reshape(-1, 1, 2), views.K, out.dist).reshape(-1, 2)
+    rays = (c2w[:3, :3] @ np.c_[und, np.ones(2)].T).T
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    centre = c2w[:3, 3]
+    t = np.linspace(0.15, 0.85, 12)[:, None]  # its ends may be corners shared with edges that move
+    on_key = np.array([i in keys and i != key for i in out.frames])
+
+    def cost(x: np.ndarray) -> float:
+        p, q = centre + np.exp(x[0]) * rays[0], centre + np.exp(x[1]) * rays[1]
+        d = out.distances(p + t * (q - p))
+        vals = d[np.isfinite(d)]
+        if len(vals) < 3:
+            return TRUNC_PX
+        kept = float(np.mean(np.sort(vals)[:max(3, int(KEEP * len(vals)))]))
+        keyed = d[on_key & np.isfinite(d)]
+        return 0.5 * (kept + float(keyed.mean())) if len(keyed) else kept
+
+    grid = np.log(np.geomspace(0.05, 5.0, 40) * scale)
+    start = min(((cost(np.array([a, b])), (a, b)) for a in grid for b in grid), key=lambda r: r[0])[1]
+    res = minimize(cost, np.array(start), method="Nelder-Mead", options={"xatol": 1e-3, "fatol": 1e-3, "maxiter": 200})
+    return Line(centre + np.exp(res.x[0]) * rays[0], centre + np.exp(res.x[1]) * rays[1], float(res.fun), key)
+
+
+def hinge_lines(views: Views, frames: list[int], keys: list[int]) -> tuple[list[Line], Outlines]:
+    """Every keyframe outline stretch lifted to its best static 3D line, best first, one per line in the world."""
+    out = Outlines(views, frames)
+    centres = np.array([np.linalg.inv(views.w2c[i])[:3, 3] for i in frames])
+    scale = float(np.linalg.norm(centres - centres.mean(0), axis=1).mean()) or 1.0
+    h, w = views.masks[keys[0]].shape
+    lines = [static_line(out, views, k, seg, keys, scale)
+             for k in keys for seg in segments(views.masks[k], SEGMENT_SHARE * float(np.hypot(h, w)))]
+    distinct: list[Line] = []
+    for ln in sorted(lines, key=lambda ln: ln.cost):  # one line seen in several keyframes is one candidate
+        mid = 0.5 * (ln.p + ln.q)
+        if not any(abs(float(ln.axis @ o.axis)) > np.cos(np.radians(3.0))
+                   and np.linalg.norm(np.cross(mid - o.p, o.axis)) < 0.02 * scale for o in distinct):
+            distinct.append(ln)
+    return distinct, out
+
+
+class Leaf:
+    """A rectangle hinged on `line`: corners at angle phi about it (radians from the basis vector `b1`)."""
+
+    def __init__(self, line: Line):
+        self.line = line
+        a = line.axis
+        helper = np.eye(3)[int(np.argmin(np.abs(a)))]
+        self.b1 = np.cross(a, helper)
+        self.b1 /= np.linalg.norm(self.b1)
+        self.b2 = np.cross(a, self.b1)
+        self.length = float(np.linalg.norm(line.q - line.p))
+
+    def corners(self, width: float, h0: float, h1: float, phi: float) -> np.ndarray:
+        a, p = self.line.axis, self.line.p
+        lo, hi = p + h0 * self.length * a, p + h1 * self.length * a
+        out = width * self.length * (np.cos(phi) * self.b1 + np.sin(phi) * self.b2)
+        return np.array([lo, hi, hi + out, lo + out])
+
+
+def iou_curves(sil: Silhouettes, leaf: Leaf, size: np.ndarray, frames: list[int], angles: np.ndarray) -> np.ndarray:
+    """(F, A) overlap of each frame's mask with the leaf of `size` (width, h0, h1) at each angle."""
+    return np.array([[sil.iou(leaf.corners(*size, phi), i) for phi in angles] for i in frames])
+
+
+def smooth_path(curves: np.ndarray, angles: np.ndarray, still: np.ndarray | None = None) -> np.ndarray:
+    """Grid positions (F,) maximising the summed overlap less `SMOOTH` per degree turned between neighbours
+    (Viterbi over frames in order; angles wrap); `still` (F,): frame f and f-1 rest at one labelled state, where a
+    turn costs `STILL` times more. Why the labels' stillness: a leaf and its mirror image about the plane through its
+    axis and the camera cast nearly one silhouette, and the mirror turns as the camera moves; where the part rests,
+    only the true leaf stays put."""
+    step = np.degrees(angles[1] - angles[0])
+    n = len(angles)
+    diff = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :])
+    jump = SMOOTH * step * np.minimum(diff, n - diff)  # (A, A)
+    still = np.zeros(len(curves), bool) if still is None else still
+    score = curves[0].copy()
+    back = np.zeros(curves.shape, int)
+    for f in range(1, len(curves)):
+        total = score[:, None] - jump * (STILL if still[f] else 1.0)  # from (rows) -> to (cols)
+        back[f] = np.argmax(total, axis=0)
+        score = total[back[f], np.arange(n)] + curves[f]
+    path = np.zeros(len(curves), int)
+    path[-1] = int(np.argmax(score))
+    for f in range(len(curves) - 1, 0, -1):
+        path[f - 1] = back[f, path[f]]
+    return path
+
+
+def refine(curve: np.ndarray, j: int, angles: np.ndarray) -> float:
+    """The angle at grid position j moved to the top of a parabola through it and its (wrapped) neighbours."""
+    a, b, c = curve[j - 1], curve[j], curve[(j + 1) % len(curve)]
+    den = a - 2 * b + c
+    shift = 0.5 * (a - c) / den if den < 0 else 0.0
+    return float(angles[j] + np.clip(shift, -0.5, 0.5) * (angles[1] - angles[0]))
+
+
+def fit_leaf(sil: Silhouettes, line: Line, frames: list[int], keys: list[int]) -> tuple[np.ndarray, float]:
+    """(width, h0, h1) of the leaf whose best silhouettes overlap the masks most, and that overlap: half the
+    keyframes' mean (a person's masks), half the best `KEEP` of at most 16 other frames (propagated masks lose a
+    plain door on whole stretches). Widths and spans in lengths of the line's segment."""
+    leaf = Leaf(line)
+    coarse = np.linspace(-np.pi, np.pi, 36, endpoint=False)
+    some = sorted(set(frames[::max(1, len(frames) // 16)]) - set(keys))
+
+    def score(size: np.ndarray) -> float:
+        if size[0] <= 0.05 or size[2] - size[1] < 0.2:
+            return 0.0
+        on_keys = float(iou_curves(sil, leaf, size, keys, coarse).max(1).mean())
+        if not some:
+            return on_keys
+        rest = np.sort(iou_curves(sil, leaf, size, some, coarse).max(1))[::-1]
+        return 0.5 * on_keys + 0.5 * float(rest[:max(1, int(KEEP * len(rest)))].mean())
+
+    start = max((np.array([w, 0.0, 1.0]) for w in np.geomspace(0.1, 3.0, 12)), key=score)
+    start = max((start + np.array([0.0, lo, hi]) for lo in (0.0, -0.5) for hi in (0.0, 0.5)), key=score)
+    res = minimize(lambda x: -score(x), start, method="Nelder-Mead",
+                   options={"xatol": 1e-3, "fatol": 1e-4, "maxiter": 60,
+                            "initial_simplex": start + np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]])})
+    return res.x, -float(res.fun)
+
+
+def slide_rival(sil: Silhouettes, out: Outlines, leaf: Leaf, size: np.ndarray, frames: list[int]) -> float:
+    """The median outline distance (px) of the best slide of a front of the same size resting on the same line: the
+    front at one angle in every frame (the one whose slides overlap the masks best), pulled along its normal by
+    each frame's best amount (the prism between its rest and its moved place). A drawer's outline has static edges
+    too (the cabinet's opening), and a turning leaf covers much of a drawer's silhouette; their outlines differ."""
+    some = frames[::max(1, len(frames) // 24)]
+    reach = np.linspace(-1.5, 1.5, 31) * size[0] * leaf.length
+    best: tuple[float, list[np.ndarray]] = (-1.0, [])
+    for phi in np.linspace(-np.pi, np.pi, 36, endpoint=False):
+        front = leaf.corners(*size, phi)
+        normal = np.cross(front[1] - front[0], front[3] - front[0])
+        normal /= np.linalg.norm(normal)
+        shapes, total = [], 0.0
+        for i in some:
+            prisms = [np.concatenate([front, front + x * normal]) for x in reach]
+            v = [sil.iou(q, i) for q in prisms]
+            total += max(v)
+            shapes.append(prisms[int(np.argmax(v))])
+        if total > best[0]:
+            best = (total, shapes)
+    dist = [d for i, q in zip(some, best[1]) if (d := out.hull_distance(q, i)) is not None]
+    return float(np.median(dist)) if dist else TRUNC_PX
+
+
+def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.ndarray | None = None,
+                known: np.ndarray | None = None) -> tuple[Fit | None, dict[str, Any]]:
+    """The hinge about the best static outline line, as a `Fit` over `frames` (the angle per frame), or None and
+    why; `keys`: the keyframes (positions into views) among `frames`; states, known (over views): where the labels
+    say the part rests (`smooth_path`)."""
+    keys = [k for k in keys if k in frames]
+    if not keys:
+        return None, {"edge_reason": "no keyframe mask shows the part (its outline's straight edges come from "
+                                     "keyframes)"}
+    lines, out = hinge_lines(views, frames, keys)
+    fig: dict[str, Any] = {"edge_lines": [round(ln.cost, 2) for ln in lines[:4]]}
+    lines = [ln for ln in lines if ln.cost <= MAX_LINE_PX]
+    if not lines:
+        fig["edge_reason"] = (f"no straight edge of its keyframe outlines stays put across the frames (best "
+                              f"{min(fig['edge_lines'], default=float('nan'))} px from the outlines, need "
+                              f"{MAX_LINE_PX})")
+        return None, fig
+    coarse, sil = Silhouettes(views, frames, SEARCH_SIDE), Silhouettes(views, frames)
+    shown = [i for i in frames if i in sil.crop]
+    best = max(((ln, *fit_leaf(coarse, ln, shown, keys)) for ln in lines[:4]), key=lambda r: r[2])
+    line, size, mean_iou = best
+    leaf = Leaf(line)
+    angles = np.linspace(-np.pi, np.pi, ANGLES, endpoint=False)
+    curves = iou_curves(sil, leaf, size, shown, angles)
+    still = np.zeros(len(shown), bool)
+    if states is not None and known is not None:
+        at = np.array(shown)
+        still[1:] = known[at[1:]] & known[at[:-1]] & (np.abs(states[at[1:]] - states[at[:-1]]) < 1e-6)
+    path = smooth_path(curves, angles, still)
+    phi = np.array([refine(curves[f], j, angles) for f, j in enumerate(path)])
+    iou = curves[np.arange(len(shown)), path]
+    hinge_px = [d for i, a in zip(shown, phi) if (d := out.hull_distance(leaf.corners(*size, a), i)) is not None]
+    hinge_px = float(np.median(hinge_px)) if hinge_px else TRUNC_PX
+    slide_px = slide_rival(coarse, out, leaf, size, shown)
+    fig.update(edge_outline_px=round(hinge_px, 2), edge_slide_outline_px=round(slide_px, 2))
+    if hinge_px > MAX_OUTLINE_PX or hinge_px > slide_px - OUTLINE_MARGIN:
+        fig["edge_reason"] = (f"a leaf turning on its static edge does not trace its outline (median {hinge_px:.1f} px "
+                              f"from the masks' outlines, need {MAX_OUTLINE_PX:g}, and {OUTLINE_MARGIN:g} px closer "
+                              f"than a slide's {slide_px:.1f}): no flat door or lid (a drawer?)")
+        return None, fig
+    key_iou = [float(v) for i, v in zip(shown, iou) if i in keys]
+    fig.update(edge_line_px=round(line.cost, 2), edge_leaf=[round(float(v), 3) for v in size],
+               edge_mean_iou=round(float(iou.mean()), 3), edge_key_iou=[round(v, 3) for v in key_iou])
+    if not key_iou or float(np.mean(key_iou)) < MIN_KEY_IOU:
+        fig["edge_reason"] = (f"a leaf hinged on its static edge does not explain the keyframes' masks (overlap "
+                              f"{np.mean(key_iou) if key_iou else 0.0:.2f}, need {MIN_KEY_IOU}): no flat door or lid")
+        return None, fig
+    # a hinge stays on the outline however far the leaf turns; an edge that leaves it as the part opens moves
+    pts = line.p + np.linspace(0.15, 0.85, 12)[:, None] * (line.q - line.p)
+    on_line = dict(zip(out.frames, out.distances(pts)))
+    turn = np.abs(np.unwrap(phi) - np.median(np.unwrap(phi)[still])) if still.any() else np.abs(np.unwrap(phi) - np.unwrap(phi)[0])
+    far = np.array([on_line.get(i, np.nan) for i in shown])
+    order = np.argsort(turn)
+    third = max(1, len(order) // 3)
+    rest_px, open_px = np.nanmedian(far[order[:third]]), np.nanmedian(far[order[-third:]])
+    fig.update(edge_line_rest_px=round(float(rest_px), 2), edge_line_open_px=round(float(open_px), 2))
+    if not np.isfinite(open_px) or open_px > rest_px + LINE_DRIFT_PX:
+        fig["edge_reason"] = (f"its static edge leaves the outline as the part opens ({open_px:.1f} px from it on the "
+                              f"third of frames turned most, {rest_px:.1f} on the least): it moves, no hinge")
+        return None, fig
+    measured = iou >= MIN_FRAME_IOU
+    d = np.unwrap(phi)
+    d -= d[int(np.argmax(measured))]
+    pos = {i: n for n, i in enumerate(shown)}
+    at = [pos.get(i) for i in frames]
+    step = float(angles[1] - angles[0])
+    ok = np.array([n is not None and bool(measured[n]) for n in at])
+    return Fit("hinge", line.axis, line.p.copy(), np.array([d[n] if n is not None else 0.0 for n in at]), ok,
+               np.full(len(frames), step), 1.0, {}), fig
+
+
+def measure_edge(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: np.ndarray, keys: list[int],
+                 min_pixels: int = 400, trust_labels: bool = False) -> tuple[Articulation | None, dict[str, Any]]:
+    """Object `obj`'s hinge from its outlines and masks over the dataset `ds` (keys: dataset positions of the
+    keyframes); (None, figures with `edge_reason`) when the route cannot measure it."""
+    masks = [ds.load_mask(f)[..., obj] for f in ds.frames]
+    w2c = np.stack([np.linalg.inv(opengl_to_opencv(f.c2w)) for f in ds.frames])
+    views = Views(masks, w2c, ds.intrinsics.K(), ds.intrinsics.dist())
+    frames = [i for i, m in enumerate(masks) if int(m.sum()) >= min_pixels]
+    fit, fig = edge_motion(views, frames, keys, states, known) if frames else (None, {"edge_reason": "the part shows in no frame"})
+    fig["route"] = "edge"
+    if fit is None:
+        return None, dict(fig, registered=0)
+    fig.update(registered=int(fit.ok.sum()), kind_from="the static edge of its outline")
+    at = np.array(frames)
+    return articulate(fit, at, states[at], known[at], labelled[at], fig, trust_labels)

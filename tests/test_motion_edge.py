@@ -1,0 +1,119 @@
+"""The edge route of `interreal motions`: a plain door cut by the image border, hinged on the one edge of its outline
+that stays put; a drawer or a part that never moves gets no hinge from it."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from interreal.conventions import opencv_to_opengl
+from interreal.dataset import known_states
+from interreal.motions.edge import measure_edge, segments, smooth_path
+from interreal.motions.silhouette import front_corners
+from interreal.synth.camera import look_at
+
+W, H = 480, 360
+K = np.array([[420.0, 0, W / 2], [0, 420.0, H / 2], [0, 0, 1]])
+# a door 0.5 wide and 2.0 tall seen from 1.3 away: its top and bottom are always outside the image
+TALL = np.array([[-0.25, 0.0, 1.0], [0.25, 0.0, 1.0], [0.25, 0.0, -1.0], [-0.25, 0.0, -1.0]])  # z up, facing -y
+N = 50
+KEYS = [0, 27, 49]
+
+
+def truth_states(n: int) -> np.ndarray:
+    """Rests closed, opens, rests open, half closes, rests."""
+    s = np.zeros(n)
+    s[12:22] = np.linspace(0, 1, 10)
+    s[22:32] = 1.0
+    s[32:42] = np.linspace(1, 0.4, 10)
+    s[42:] = 0.4
+    return s
+
+
+def capture(kind: str, n: int = N, moves: bool = True):
+    """A duck-typed dataset: cameras on a 50 deg arc 1.3 units away looking at the part's middle, and its masks:
+    the tall door turned up to 80 deg about its left edge, or a drawer front (the prism it sweeps, 0.2 units)."""
+    states = truth_states(n) if moves else np.zeros(n)
+    frames, masks = [], []
+    for i, s in enumerate(states):
+        az = np.radians(-25 + 50 * i / (n - 1))
+        centre = 1.3 * np.array([np.sin(az) * np.cos(0.15), -np.cos(az) * np.cos(0.15), np.sin(0.15)])
+        c2w = np.eye(4)
+        c2w[:3, :3], c2w[:3, 3] = look_at(centre, np.zeros(3)), centre
+        if kind == "slide":
+            pts = np.concatenate([TALL, TALL + [0.0, -0.2 * s, 0.0]])
+        else:
+            rot = Rotation.from_rotvec([0.0, 0.0, -np.radians(80) * s]).as_matrix()
+            pts = (TALL - TALL[0]) @ rot.T + TALL[0]
+        w2c = np.linalg.inv(c2w)
+        p = (K @ (w2c[:3, :3] @ pts.T + w2c[:3, 3:])).T
+        m = np.zeros((H, W), np.uint8)
+        cv2.fillConvexPoly(m, cv2.convexHull(np.round(p[:, :2] / p[:, 2:] * 16).astype(np.int32)), 1, shift=4)
+        frames.append(SimpleNamespace(c2w=opencv_to_opengl(c2w), index=i))
+        masks.append(m[..., None] > 0)
+    ds = SimpleNamespace(frames=frames, load_mask=lambda f: masks[f.index],
+                         intrinsics=SimpleNamespace(K=lambda: K, dist=lambda: np.zeros(5)))
+    labelled = np.zeros(n, bool)
+    labelled[[0, 6, 11, 22, 27, 31, 42, 49]] = True
+    st, kn = known_states(np.arange(n, dtype=float), np.where(labelled, states, 0)[:, None], labelled[:, None])
+    return ds, states, st[:, 0], kn[:, 0], labelled, masks
+
+
+def off_deg(axis: np.ndarray, truth: list[float]) -> float:
+    return float(np.degrees(np.arccos(min(1.0, abs(axis @ truth)))))
+
+
+def test_a_tall_plain_door_cut_by_the_border_is_hinged_on_its_static_edge():
+    ds, truth, st, kn, labelled, masks = capture("hinge")
+    assert all(front_corners(m[..., 0]) is None for m in masks)  # no view shows its corners: the corners route can't
+    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)
+    assert motion is not None and fig["accepted"], fig
+    assert motion.kind == "hinge"
+    assert off_deg(motion.axis, [0.0, 0.0, 1.0]) < 2.0, motion.axis
+    off = motion.origin - TALL[0]
+    assert np.linalg.norm(off - (off @ motion.axis) * motion.axis) < 0.02  # on the left edge
+    assert abs(np.degrees(motion.range) - 80) < 4, np.degrees(motion.range)
+    rows = np.array(fig["frame_states"])
+    assert len(rows) >= 40
+    assert np.sqrt(np.mean((rows[:, 1] - truth[rows[:, 0].astype(int)]) ** 2)) < 0.06
+    assert fig["edge_outline_px"] + 0.5 <= fig["edge_slide_outline_px"]
+
+
+def test_a_drawer_gets_no_hinge_from_its_static_edges():
+    ds, truth, st, kn, labelled, _ = capture("slide")
+    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)
+    assert motion is None or not fig["accepted"] or motion.kind != "hinge", fig
+
+
+@pytest.mark.parametrize("kind", ["hinge", "slide"])
+def test_a_part_that_never_moves_gets_no_motion(kind):
+    ds, truth, st, kn, labelled, _ = capture(kind, moves=False)
+    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)
+    assert motion is None or not fig["accepted"], fig
+
+
+def test_no_keyframe_is_one_clear_reason():
+    ds, truth, st, kn, labelled, _ = capture("hinge")
+    motion, fig = measure_edge(ds, 0, st, kn, labelled, [], min_pixels=50)
+    assert motion is None and "keyframe" in fig["edge_reason"]
+
+
+def test_segments_leave_out_the_image_border():
+    m = np.zeros((100, 200), bool)
+    m[:, :80] = True  # a part cut by the left, top and bottom borders: one edge of its own
+    segs = segments(m, 20)
+    assert len(segs) == 1 and np.allclose(segs[0][:, 0], 79, atol=1.5)
+
+
+def test_smooth_path_follows_its_neighbours_through_a_frame_without_evidence():
+    angles = np.radians(np.arange(-180, 180, 5.0))
+    want = np.radians([0, 10, 20, 30, 40])
+    curves = np.array([np.exp(-((angles - a) / 0.1) ** 2) for a in want])
+    curves[2] = np.exp(-((angles - np.radians(-120)) / 0.1) ** 2) * 0.3  # a bad mask points elsewhere, weakly
+    path = smooth_path(curves, angles)
+    got = np.degrees(angles[path])
+    assert abs(got[2] - 20) <= 10 and np.allclose(got[[0, 1, 3, 4]], [0, 10, 30, 40])

@@ -33,7 +33,7 @@ from interreal.transients import IGNORE
 MAX_CLICKS = 20
 LEVELS = (0.85, 0.90)
 FRAME_STEP = 10
-CHAIN = False  # the prior of each click: the previous answer (True) or the frame's own prior (False)
+CHAIN = True  # the prior of each click: the previous answer, as in the app (False: the frame's own prior each time)
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -81,7 +81,7 @@ def click_frame(rgb: np.ndarray, gt: np.ndarray, max_clicks: int = MAX_CLICKS,
         if stop_at is not None and ious[-1] >= stop_at:
             break
     noc = {f"noc{round(100 * lv)}": next((i + 1 for i, v in enumerate(ious) if v >= lv), max_clicks) for lv in LEVELS}
-    return {"ious": [round(v, 4) for v in ious], "seconds": secs, "mask": pred, **noc}
+    return {"ious": [round(v, 4) for v in ious], "seconds": secs, "mask": pred, "clicks": clicks, **noc}
 
 
 def davis_frames(root: Path, seq: str, step: int = FRAME_STEP) -> list[tuple[str, np.ndarray, np.ndarray]]:
@@ -127,7 +127,7 @@ def run_clicks(sets: dict[str, list[tuple[str, np.ndarray, np.ndarray]]], max_cl
         rows = []
         for name, rgb, gt in items:
             r = click_frame(rgb, gt, max_clicks, stop_at=max(LEVELS))
-            r.pop("mask")
+            r.pop("mask"), r.pop("clicks")
             rows.append({"data": seq, "frame": name, "noc85": r["noc85"], "noc90": r["noc90"], "ious": r["ious"],
                          "s_per_click": statistics.mean(r["seconds"]) if r["seconds"] else 0.0,
                          "iou_1": r["ious"][0] if r["ious"] else None, "size": list(rgb.shape[:2])})
@@ -232,7 +232,8 @@ def main_clicks(args, davis_sequences: Callable, davis_dataset: Callable, propag
     lap = [r for r in frames if r["data"] == "laptop"]
     if lap:
         summary["laptop"] = {"frames": len(lap), "noc85": statistics.mean(r["noc85"] for r in lap),
-                             "noc90": statistics.mean(r["noc90"] for r in lap), "iou_by_clicks": curve(lap),
+                             "noc90": statistics.mean(r["noc90"] for r in lap),
+                             "s_per_click": statistics.mean(r["s_per_click"] for r in lap), "iou_by_clicks": curve(lap),
                              "note": "truth: the fixtures' LabelMe polygons (4-8 corners), coarse at the edges"}
     videos = []
     for seq in (seqs if args.video_rounds > 0 else []):

@@ -9,7 +9,7 @@ import pytest
 
 pytest.importorskip("fastapi", reason="the 'web' extra is part of the dev environment")
 from fastapi.testclient import TestClient  # noqa: E402
-from test_clicks import iou, scene  # noqa: E402  (the synthetic scene: a red ellipse, a look-alike box)
+from test_clicks import click_frame, iou, scene  # noqa: E402  (the scene: a red ellipse, a look-alike box)
 
 from interreal.annotate.server import create_app  # noqa: E402
 from interreal.annotate.store import _read_index_png  # noqa: E402
@@ -61,6 +61,19 @@ def test_clicks_segment_store_and_survive_a_restart(app, scene_ds):
     again = app_client(scene_ds).get("/api/keyframe/00000").json()  # a new server on the same dataset
     assert again["exists"] and again["versions"] == r.json()["versions"]
     assert np.array_equal(_read_index_png(scene_ds / "keyframes" / "00000.png"), index)
+
+
+def test_the_app_answers_the_benchmarks_simulated_user_as_the_benchmark_does(app, scene_ds):
+    """`bench_masks.py --clicks` measures what the app does: the same clicks, one request each, give the same mask."""
+    img, obj, _ = scene(0, distractor=True)
+    sim = click_frame(img, obj, max_clicks=4, stop_at=0.99)
+    assert len(sim["clicks"]) >= 2
+    versions: dict = {}
+    for n in range(1, len(sim["clicks"]) + 1):
+        r = click(app, "00000", [[c.x, c.y, c.positive] for c in sim["clicks"][:n]], versions)
+        assert r.status_code == 200
+        versions = r.json()["versions"]
+    assert np.array_equal(_read_index_png(scene_ds / "keyframes" / "00000.png") == 1, sim["mask"])
 
 
 def test_clicks_leave_other_objects_alone_and_undo_like_a_stroke(app, scene_ds):

@@ -2,7 +2,7 @@
 
 Simulated captures (seeds; 150 frames 480x360 by default) go through `interreal process` without motions; then,
 per part, each route is run on its own (sfm: the part's own reconstruction; pnp: known-camera PnP; silhouette: the
-part's masks against the known cameras) and the whole stage (routes in order until one is accepted). Per part and
+part's masks against the known cameras; edge: the static edge of its keyframes' outlines as a hinge) and the whole stage (routes in order until one is accepted). Per part and
 route: the kind, the axis and range error against the truth, the state RMSE over the frames it measured (against the
 simulator's states), accepted or the reason it was not, seconds. The drawers of seeds 4 and 6 are the plain parts
 SfM and PnP cannot follow.
@@ -10,6 +10,10 @@ SfM and PnP cannot follow.
     python recipes/bench_motions.py --out bench/                 # seeds 1-6
     python recipes/bench_motions.py --quick --out bench/         # seeds 4 and 6, 90 frames
     python recipes/bench_motions.py --quick --hard --seeds 1,2,3,4,5,6,7,8,9,10 --out bench/  # plain parts, drift
+    python recipes/bench_motions.py --quick --hard --true-masks --routes edge,stage --out bench/  # routes' ceiling
+
+`--true-masks` gives every route the simulator's own masks in place of the propagated ones: what the motion routes
+can do with perfect masks, apart from what propagation loses.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from typing import Any
 import numpy as np
 from benchlib import bench_args, print_table, write_results
 
-ROUTE_NAMES = ("sfm", "pnp", "silhouette", "stage")
+ROUTE_NAMES = ("sfm", "pnp", "silhouette", "edge", "stage")
 
 
 HARD = {"furniture": "plain", "exposure_drift": 0.2, "noise": 3.0, "occluder": 0.3, "arm": True}  # --hard: as real captures are
@@ -57,13 +61,31 @@ def score(motion, fig: dict[str, Any], truth, true_states: np.ndarray) -> dict[s
             "accepted": bool(fig.get("accepted")), "reason": fig.get("reason") or None}
 
 
-def run_part(ds_path: Path, cap: Path, o: int, route: str) -> dict[str, Any]:
+def true_masks(ds, cap: Path) -> None:
+    """The dataset's masks replaced, in memory, by the simulator's instance maps (object k = instance k + 1)."""
+    import cv2
+
+    own = ds.load_mask
+
+    def load(f):
+        inst = cv2.imread(str(cap / "gt" / "instance" / f"{f.index:05d}.png"), cv2.IMREAD_UNCHANGED)
+        m = own(f).copy()
+        for k in range(m.shape[-1]):
+            m[..., k] = cv2.resize((inst == k + 1).astype(np.uint8), m.shape[1::-1], interpolation=cv2.INTER_NEAREST) > 0
+        return m
+
+    ds.load_mask = load
+
+
+def run_part(ds_path: Path, cap: Path, o: int, route: str, truth_masks: bool = False) -> dict[str, Any]:
     from interreal.motions import stage as motions
     from interreal.dataset import known_states, load_dataset
     from interreal.sfm import colmap
     from interreal.synth.truth import truth_articulation
 
     ds = load_dataset(ds_path)
+    if truth_masks:
+        true_masks(ds, cap)
     name = ds.object_names[o]
     labels, given = ds.label_matrix()
     times = np.array([f.index for f in ds.frames], float)
@@ -94,6 +116,8 @@ def main() -> int:
         p.add_argument("--hard", action="store_true", help="captures as hard as real ones: plain painted furniture "
                                                             "and parts, exposure drift, sensor noise, a person "
                                                             f"walking across ({HARD})")
+        p.add_argument("--true-masks", action="store_true", help="the simulator's own masks in place of the "
+                                                                  "propagated ones (the routes' ceiling)")
 
     args = bench_args("motions", __doc__.splitlines()[0], extra)
     seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else [4, 6] if args.quick else [1, 2, 3, 4, 5, 6]
@@ -105,7 +129,7 @@ def main() -> int:
         cap, ds = make_dataset(args.out / "_motions_work", seed, frames, size, **synth)
         for o in range(2):
             for route in routes:
-                r = {"seed": seed, **run_part(ds, cap, o, route)}
+                r = {"seed": seed, **run_part(ds, cap, o, route, args.true_masks)}
                 runs.append(r)
                 print(f"seed {seed} {r['part']} {route}: {r['kind']} accepted={r['accepted']} axis {r.get('axis_deg')} "
                       f"range {r.get('range_error')} states {r.get('state_rmse')} {r.get('reason') or ''}", flush=True)
@@ -115,7 +139,7 @@ def main() -> int:
     print_table(summary, ["route", "part", "measured_right", "seeds", "worst_axis_deg", "worst_range_error",
                           "worst_state_rmse"], f"measured right (the kind, axis <= {RIGHT_AXIS_DEG} deg, range within "
                                                f"{RIGHT_RANGE:.0%}), worst first")
-    write_results(args.out, "motions" + ("_hard" if args.hard else ""), runs, frames=frames, size=list(size),
+    write_results(args.out, "motions" + ("_hard" if args.hard else "") + ("_true_masks" if args.true_masks else ""), runs, frames=frames, size=list(size),
                   seeds=seeds, synth=synth, summary=summary)
     return 0
 

@@ -41,7 +41,6 @@ ANGLES = 144          # angle grid of a frame's search (2.5 deg), refined by a p
 SMOOTH = 0.01         # overlap given up per degree the leaf turns between neighbouring frames (dynamic programming)
 STILL = 10.0          # ... this many times more between frames the labels say rest at one state
 MIN_FRAME_IOU = 0.7   # a frame whose best silhouette overlaps its mask less than this is not measured
-LINE_DRIFT_PX = 1.0   # the hinge line may sit this much further from the outlines where the leaf turned most
 MAX_OUTLINE_PX = 3.0  # the turning leaf's outline within this of the masks' (median over frames, work-size px) ...
 OUTLINE_MARGIN = 0.5  # ... and this much closer than a slide's of the same front: a drawer's outline has static
 #                       edges as well (on simulated captures with true masks: doors 0.7-2.8 px, 1.0-2.4 closer than
@@ -277,26 +276,31 @@ def fit_leaf(sil: Silhouettes, line: Line, frames: list[int], keys: list[int]) -
     return res.x, -float(res.fun)
 
 
-def slide_rival(sil: Silhouettes, out: Outlines, leaf: Leaf, size: np.ndarray, frames: list[int]) -> float:
-    """The median outline distance (px) of the best slide of a front of the same size resting on the same line: the
-    front at one angle in every frame (the one whose slides overlap the masks best), pulled along its normal by
-    each frame's best amount (the prism between its rest and its moved place). A drawer's outline has static edges
-    too (the cabinet's opening), and a turning leaf covers much of a drawer's silhouette; their outlines differ."""
+def slide_rival(sil: Silhouettes, out: Outlines, leaf: Leaf, size: np.ndarray, frames: list[int], rest: float
+                ) -> float:
+    """The median outline distance (px) of the best slide of the leaf's front as it rests (at angle `rest`, give or
+    take 10 deg, and up to a third of its width in front of or behind the line): pulled along its normal by each
+    frame's best amount (the prism between its rest and its moved place). A drawer's outline has static edges too
+    (the cabinet's opening), and a turning leaf covers much of a drawer's silhouette; their outlines differ."""
     some = frames[::max(1, len(frames) // 24)]
-    reach = np.linspace(-1.5, 1.5, 31) * size[0] * leaf.length
+    width = size[0] * leaf.length
+    reach = np.linspace(0.0, 1.5, 31) * width
     best: tuple[float, list[np.ndarray]] = (-1.0, [])
-    for phi in np.linspace(-np.pi, np.pi, 36, endpoint=False):
-        front = leaf.corners(*size, phi)
-        normal = np.cross(front[1] - front[0], front[3] - front[0])
+    for phi in rest + np.radians([-10.0, 0.0, 10.0]):
+        base = leaf.corners(*size, phi)
+        normal = np.cross(base[1] - base[0], base[3] - base[0])
         normal /= np.linalg.norm(normal)
-        shapes, total = [], 0.0
-        for i in some:
-            prisms = [np.concatenate([front, front + x * normal]) for x in reach]
-            v = [sil.iou(q, i) for q in prisms]
-            total += max(v)
-            shapes.append(prisms[int(np.argmax(v))])
-        if total > best[0]:
-            best = (total, shapes)
+        for sign in (1.0, -1.0):  # the drawer comes out on one side of its front
+            for shift in np.linspace(-1 / 3, 1 / 3, 5) * width:
+                front = base + shift * normal
+                shapes, total = [], 0.0
+                for i in some:
+                    prisms = [np.concatenate([front, front + sign * x * normal]) for x in reach]
+                    v = [sil.iou(q, i) for q in prisms]
+                    total += max(v)
+                    shapes.append(prisms[int(np.argmax(v))])
+                if total > best[0]:
+                    best = (total, shapes)
     dist = [d for i, q in zip(some, best[1]) if (d := out.hull_distance(q, i)) is not None]
     return float(np.median(dist)) if dist else TRUNC_PX
 
@@ -325,16 +329,20 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
     leaf = Leaf(line)
     angles = np.linspace(-np.pi, np.pi, ANGLES, endpoint=False)
     curves = iou_curves(sil, leaf, size, shown, angles)
-    still = np.zeros(len(shown), bool)
+    still, closed = np.zeros(len(shown), bool), np.zeros(len(shown), bool)
     if states is not None and known is not None:
         at = np.array(shown)
         still[1:] = known[at[1:]] & known[at[:-1]] & (np.abs(states[at[1:]] - states[at[:-1]]) < 1e-6)
+        if known[at].any():  # the frames at the lowest labelled state: where it rests closed
+            closed = known[at] & (states[at] <= states[at][known[at]].min() + 1e-6)
     path = smooth_path(curves, angles, still)
     phi = np.array([refine(curves[f], j, angles) for f, j in enumerate(path)])
     iou = curves[np.arange(len(shown)), path]
     hinge_px = [d for i, a in zip(shown, phi) if (d := out.hull_distance(leaf.corners(*size, a), i)) is not None]
     hinge_px = float(np.median(hinge_px)) if hinge_px else TRUNC_PX
-    slide_px = slide_rival(coarse, out, leaf, size, shown)
+    unwrapped = np.unwrap(phi)
+    rest = float(np.median(unwrapped[closed if closed.any() else still if still.any() else slice(0, 1)]))
+    slide_px = slide_rival(coarse, out, leaf, size, shown, rest)
     fig.update(edge_outline_px=round(hinge_px, 2), edge_slide_outline_px=round(slide_px, 2))
     if hinge_px > MAX_OUTLINE_PX or hinge_px > slide_px - OUTLINE_MARGIN:
         fig["edge_reason"] = (f"a leaf turning on its static edge does not trace its outline (median {hinge_px:.1f} px "
@@ -347,19 +355,6 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
     if not key_iou or float(np.mean(key_iou)) < MIN_KEY_IOU:
         fig["edge_reason"] = (f"a leaf hinged on its static edge does not explain the keyframes' masks (overlap "
                               f"{np.mean(key_iou) if key_iou else 0.0:.2f}, need {MIN_KEY_IOU}): no flat door or lid")
-        return None, fig
-    # a hinge stays on the outline however far the leaf turns; an edge that leaves it as the part opens moves
-    pts = line.p + np.linspace(0.15, 0.85, 12)[:, None] * (line.q - line.p)
-    on_line = dict(zip(out.frames, out.distances(pts)))
-    turn = np.abs(np.unwrap(phi) - np.median(np.unwrap(phi)[still])) if still.any() else np.abs(np.unwrap(phi) - np.unwrap(phi)[0])
-    far = np.array([on_line.get(i, np.nan) for i in shown])
-    order = np.argsort(turn)
-    third = max(1, len(order) // 3)
-    rest_px, open_px = np.nanmedian(far[order[:third]]), np.nanmedian(far[order[-third:]])
-    fig.update(edge_line_rest_px=round(float(rest_px), 2), edge_line_open_px=round(float(open_px), 2))
-    if not np.isfinite(open_px) or open_px > rest_px + LINE_DRIFT_PX:
-        fig["edge_reason"] = (f"its static edge leaves the outline as the part opens ({open_px:.1f} px from it on the "
-                              f"third of frames turned most, {rest_px:.1f} on the least): it moves, no hinge")
         return None, fig
     measured = iou >= MIN_FRAME_IOU
     d = np.unwrap(phi)

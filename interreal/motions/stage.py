@@ -432,7 +432,7 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                     continue
                 with NativeLog(part / "colmap.log", cfg.verbose) as log:
                     # on the terminal even while COLMAP's log (fd 2) goes to the file: a part takes minutes
-                    with tqdm(total=3 + cfg.attempts, desc=f"motions '{name}'", file=log.term, leave=False,
+                    with tqdm(total=4 + cfg.attempts, desc=f"motions '{name}'", file=log.term, leave=False,
                               unit="phase") as bar:
                         def step(text: str) -> None:
                             if text != "matching":
@@ -504,6 +504,7 @@ def add_arguments(p) -> None:
     add_flags(p, MotionConfig)  # one flag per `option` field
     p.add_argument("--force", action="store_true", help="measure again even when a finished run matches")
     p.epilog = ("examples:\n  interreal motions out/ds\n  interreal motions out/ds --erode 4\n"
+                "  interreal motions out/ds --route edge      # a plain door filmed from close by, tried first\n"
                 f"writes DS/{ARTICULATION_FILE} (read by `livescene train`) and DS/reports/motions.json")
 
 

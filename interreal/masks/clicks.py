@@ -4,8 +4,8 @@ Why this shape: a click says far less than a polygon, so each must reach as far 
 reach is its geodesic neighbourhood on the colour edges (pixels joined to it without crossing a strong edge): near
 the click it is certain, further out probable foreground / background for GrabCut, and the part of the prior a
 negative click is geodesically nearer than every positive one is dropped. Outside the clicks' reach GrabCut starts
-from the prior mask (the frame's propagated mask, or the answer to the previous click), so a click mostly refines
-where it lands. Without a prior the first guess is what is geodesically nearer a positive click than the image
+from the prior mask (the frame's propagated mask, or the answer to the previous click), and far from every click
+(`KEEP` reaches) the prior is kept as it is, so a click refines where it lands and does not redraw the rest. Without a prior the first guess is what is geodesically nearer a positive click than the image
 border. The cut is made in a box around the object (the prior and the clicks, with a margin: a local background
 model, and the detail of a small object) at a work size (long side `WORK_SIZE`), so a call takes about 0.2-0.4 s at
 854x480 on 2 cores; the answer is brought back to full size through a guided filter on the full image, so its edges
@@ -29,6 +29,7 @@ REACH = 0.10             # a click's geodesic reach, as a share of the image's d
 ROI_MARGIN = 0.4         # the cut's box: the prior's and the positive clicks' box grown by this share of its size
 ROI_MIN = 24             # px, and by at least this much
 HARD = 0.4               # within this share of the reach a click's neighbourhood is certain, not probable
+KEEP = 3.0               # with a prior given: beyond this many reaches from every click it is kept as it is
 FIRST_REACH = 2.0        # without a prior: the first guess stops this many reaches from the positive clicks
 EDGE_WEIGHT = 3.0        # how much a colour edge lengthens a geodesic path (per unit of Lab gradient / median)
 ITERATIONS = 2           # GrabCut's iterations (each re-learns the colour models)
@@ -92,7 +93,8 @@ def segment(rgb: np.ndarray, clicks: Iterable[Click | Sequence], prior: np.ndarr
     if (prior is None or not prior.any()) and not any(c.positive for c in clicks):
         return np.zeros((h, w), dtype=bool)
     work_size = WORK_SIZE if work_size is None else work_size
-    if prior is None or not prior.any():
+    given = prior is not None and bool(prior.any())
+    if not given:
         prior = _first_guess(rgb, clicks, work_size)
     reach = REACH * float(np.hypot(h, w))  # full-size pixels on flat colour
     x0, y0, x1, y1 = _roi(prior, clicks, w, h, reach)
@@ -104,7 +106,7 @@ def segment(rgb: np.ndarray, clicks: Iterable[Click | Sequence], prior: np.ndarr
     inside = [c for c in clicks if x0 <= c.x < x1 and y0 <= c.y < y1]
     pts = [(min(sw - 1, int((c.x - x0) * sw / cw)), min(sh - 1, int((c.y - y0) * sh / ch)), c.positive) for c in inside]
     small_prior = _resize_mask(prior[y0:y1, x0:x1], sw, sh)
-    soft = _cut(small, pts, small_prior, reach * sw / cw)
+    soft = _cut(small, pts, small_prior, reach * sw / cw, keep_far=given)
     out = np.zeros((h, w), dtype=bool)
     out[y0:y1, x0:x1] = _upscale(soft, crop, [(c.x - x0, c.y - y0, c.positive) for c in inside], SEED_RADIUS * cw / sw)
     return out
@@ -174,8 +176,10 @@ def edge_cost(small: np.ndarray) -> np.ndarray:
     return 1.0 + EDGE_WEIGHT * grad / max(float(np.median(grad)) * 4.0, 1e-3)
 
 
-def _cut(small: np.ndarray, pts: list[tuple[int, int, bool]], prior: np.ndarray, reach: float) -> np.ndarray:
-    """GrabCut at the work size: float (h, w) foreground in {0, 1}, the clicks' discs enforced."""
+def _cut(small: np.ndarray, pts: list[tuple[int, int, bool]], prior: np.ndarray, reach: float,
+         keep_far: bool) -> np.ndarray:
+    """GrabCut at the work size: float (h, w) foreground in {0, 1}, the clicks' discs enforced; keep_far: a given
+    prior is certain beyond KEEP reaches from every click."""
     sh, sw = small.shape[:2]
     cost = edge_cost(small)
     pos = [(x, y) for x, y, p in pts if p]
@@ -193,6 +197,10 @@ def _cut(small: np.ndarray, pts: list[tuple[int, int, bool]], prior: np.ndarray,
     seeds = np.zeros((sh, sw), dtype=np.uint8)
     for x, y, p in pts:
         cv2.circle(seeds, (x, y), SEED_RADIUS, 1 if p else 2, -1)
+    if keep_far:  # a click fixes where it lands: GrabCut's new colour models do not redraw the far parts
+        far = np.minimum(d_pos, d_neg) >= KEEP * reach
+        labels[far & base] = cv2.GC_FGD
+        labels[far & ~base] = cv2.GC_BGD
     hard = np.minimum(d_pos, d_neg) < HARD * reach
     labels[hard & (d_pos < d_neg)] = cv2.GC_FGD
     labels[hard & (d_neg <= d_pos)] = cv2.GC_BGD

@@ -117,3 +117,16 @@ def test_smooth_path_follows_its_neighbours_through_a_frame_without_evidence():
     path = smooth_path(curves, angles)
     got = np.degrees(angles[path])
     assert abs(got[2] - 20) <= 10 and np.allclose(got[[0, 1, 3, 4]], [0, 10, 30, 40])
+
+
+def test_a_range_no_door_can_turn_is_not_used(monkeypatch):
+    from interreal.dataset import Articulation
+    from interreal.motions import edge
+
+    def scaled_past(fit, frames, states, known, labelled, fig, trust_labels=False):  # labels that scale 80 deg to 200
+        return Articulation("hinge", fit.axis, fit.point, np.radians(200.0), {}), dict(fig, accepted=True, reason="")
+
+    monkeypatch.setattr(edge, "articulate", scaled_past)
+    ds, truth, st, kn, labelled, _ = capture("hinge")
+    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)
+    assert not fig["accepted"] and "more than a door" in fig["reason"], fig

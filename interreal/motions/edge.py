@@ -359,6 +359,11 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
     measured = iou >= MIN_FRAME_IOU
     d = np.unwrap(phi)
     d -= d[int(np.argmax(measured))]
+    span = float(np.ptp(d[measured])) if measured.any() else 0.0
+    if span > np.pi:  # no door or lid turns further; the path went over to the leaf's mirror image somewhere
+        fig["edge_reason"] = (f"its leaf turns {np.degrees(span):.0f} deg over the video, more than a door or lid can: "
+                              f"its mirror image was followed (label a frame in each stretch where it rests)")
+        return None, fig
     pos = {i: n for n, i in enumerate(shown)}
     at = [pos.get(i) for i in frames]
     step = float(angles[1] - angles[0])
@@ -381,4 +386,8 @@ def measure_edge(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: 
         return None, dict(fig, registered=0)
     fig.update(registered=int(fit.ok.sum()), kind_from="the static edge of its outline")
     at = np.array(frames)
-    return articulate(fit, at, states[at], known[at], labelled[at], fig, trust_labels)
+    motion, fig = articulate(fit, at, states[at], known[at], labelled[at], fig, trust_labels)
+    if fig.get("accepted") and motion.range > np.pi:  # the labels scaled what it measured past what a door can turn
+        fig.update(accepted=False, reason=f"its range comes to {np.degrees(motion.range):.0f} deg, more than a door or "
+                                          f"lid turns: the measured angles or the labels that scale them are wrong")
+    return motion, fig

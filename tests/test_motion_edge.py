@@ -130,3 +130,15 @@ def test_a_range_no_door_can_turn_is_not_used(monkeypatch):
     ds, truth, st, kn, labelled, _ = capture("hinge")
     motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)
     assert not fig["accepted"] and "more than a door" in fig["reason"], fig
+
+
+def test_frames_the_masks_stage_does_not_trust_are_left_out():
+    ds, truth, st, kn, labelled, masks = capture("hinge")
+    conf = np.ones(N)
+    for i in range(13, 21):  # propagation left the mask where the door rested while it opened
+        masks[i][...] = masks[12]
+        conf[i] = 0.1
+    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50, confidence=conf)
+    assert motion is not None and fig["accepted"], fig
+    assert off_deg(motion.axis, [0.0, 0.0, 1.0]) < 2.0 and abs(np.degrees(motion.range) - 80) < 4
+    assert not {f for f, _ in fig["frame_states"]} & set(range(13, 21))  # no state read from a mask it distrusts

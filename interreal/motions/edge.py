@@ -45,6 +45,9 @@ MAX_OUTLINE_PX = 3.0  # the turning leaf's outline within this of the masks' (me
 OUTLINE_MARGIN = 0.5  # ... and this much closer than a slide's of the same front: a drawer's outline has static
 #                       edges as well (on simulated captures with true masks: doors 0.7-2.8 px, 1.0-2.4 closer than
 #                       a slide; drawers 3.3-4.8 px)
+KEY_WEIGHT = 5.0      # a keyframe's overlap counts this many frames' in the dynamic programming
+MIN_CONFIDENCE = 0.5  # frames whose mask the masks stage trusts less than this are left out (a plain door's mask
+#                       leaves it within a few frames of a keyframe, and the stage knows: 0.07-0.3 there)
 MIN_KEY_IOU = 0.8     # the keyframes' masks (exact) must be explained this well on average (a door's edge seen side
 #                       on widens its mask beyond its front's: 0.76 on one simulated keyframe with its true masks)
 
@@ -335,7 +338,8 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
         still[1:] = known[at[1:]] & known[at[:-1]] & (np.abs(states[at[1:]] - states[at[:-1]]) < 1e-6)
         if known[at].any():  # the frames at the lowest labelled state: where it rests closed
             closed = known[at] & (states[at] <= states[at][known[at]].min() + 1e-6)
-    path = smooth_path(curves, angles, still)
+    weight = np.array([KEY_WEIGHT if i in keys else 1.0 for i in shown])[:, None]  # a person drew those masks
+    path = smooth_path(curves * weight, angles, still)
     phi = np.array([refine(curves[f], j, angles) for f, j in enumerate(path)])
     iou = curves[np.arange(len(shown)), path]
     hinge_px = [d for i, a in zip(shown, phi) if (d := out.hull_distance(leaf.corners(*size, a), i)) is not None]
@@ -373,13 +377,17 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
 
 
 def measure_edge(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: np.ndarray, keys: list[int],
-                 min_pixels: int = 400, trust_labels: bool = False) -> tuple[Articulation | None, dict[str, Any]]:
+                 min_pixels: int = 400, trust_labels: bool = False, confidence: np.ndarray | None = None
+                 ) -> tuple[Articulation | None, dict[str, Any]]:
     """Object `obj`'s hinge from its outlines and masks over the dataset `ds` (keys: dataset positions of the
-    keyframes); (None, figures with `edge_reason`) when the route cannot measure it."""
+    keyframes; confidence (N,): the masks stage's per-frame confidence, frames under `MIN_CONFIDENCE` left out but
+    the keyframes); (None, figures with `edge_reason`) when the route cannot measure it."""
     masks = [ds.load_mask(f)[..., obj] for f in ds.frames]
     w2c = np.stack([np.linalg.inv(opengl_to_opencv(f.c2w)) for f in ds.frames])
     views = Views(masks, w2c, ds.intrinsics.K(), ds.intrinsics.dist())
-    frames = [i for i, m in enumerate(masks) if int(m.sum()) >= min_pixels]
+    trusted = np.ones(len(masks), bool) if confidence is None else np.asarray(confidence) >= MIN_CONFIDENCE
+    trusted[[k for k in keys if k < len(masks)]] = True
+    frames = [i for i, m in enumerate(masks) if trusted[i] and int(m.sum()) >= min_pixels]
     fit, fig = edge_motion(views, frames, keys, states, known) if frames else (None, {"edge_reason": "the part shows in no frame"})
     fig["route"] = "edge"
     if fit is None:

@@ -258,7 +258,7 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
                 continue
             step("static edge")
             motion, fig = measure_edge(ds, obj, states, known, labelled, keyframe_positions(ds), cfg.min_pixels,
-                                       cfg.trust_labels)
+                                       cfg.trust_labels, mask_confidence(ds, obj))
         else:
             motion, fig = _measure_part_sfm(pc, ds, names, part, states, known, labelled, cfg, step, start)
         fig.setdefault("route", route)
@@ -287,6 +287,15 @@ def keyframe_positions(ds) -> list[int]:
         listed = {p.stem: p.name for p in (ds.root / KEYFRAMES_DIR).iterdir() if p.suffix in (".png", ".json")}
     at = {fid: i for i, fid in enumerate(fids)}
     return sorted(at[k] for k in listed if k in at)
+
+
+def mask_confidence(ds, obj: int) -> np.ndarray | None:
+    """(N,) the masks stage's confidence in object `obj`'s mask on each frame (its report), None without one."""
+    conf = (((read_report(ds.root, "masks") or {}).get("figures") or {}).get("confidence") or {})
+    per = conf.get(ds.object_names[obj]) if isinstance(conf, dict) else None
+    if not isinstance(per, dict):
+        return None
+    return np.array([float(per.get(f.fid, 1.0)) for f in ds.frames])
 
 
 def _measure_part_sfm(pc, ds, names: list[str], part: Path, states: np.ndarray, known: np.ndarray,

@@ -14,7 +14,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..conventions import MASKS_DIR, UNANNOTATED
+from ..conventions import UNANNOTATED, mask_file
 from ..errors import DatasetError, InputError
 from ..masks.clicks import as_clicks, check_clicks, segment
 from ..transients import read_transient
@@ -51,7 +51,7 @@ def propagated(ds: Path, fid: str, oid: int, ignore_object: int, hw: tuple[int, 
             return read_transient(ds, fid, hw)
         except DatasetError:
             return None  # `interreal validate` names a broken layer; the clicks work without it
-    path = ds / MASKS_DIR / f"{fid}.npy"
+    path = mask_file(ds, fid)
     try:
         onehot = np.load(path, allow_pickle=False) if path.is_file() else None
     except (ValueError, EOFError, OSError):

@@ -26,10 +26,9 @@ import cv2
 import numpy as np
 from scipy.optimize import minimize
 
-from ..conventions import opengl_to_opencv
 from ..dataset import Articulation
 from .fit import Fit, articulate
-from .silhouette import Silhouettes, Views
+from .silhouette import Silhouettes, Views, views_of
 
 SIDE = 480            # outlines and final silhouettes are compared at most this large (long side) ...
 SEARCH_SIDE = 240     # ... the leaf's size is searched on silhouettes this large
@@ -97,15 +96,9 @@ class Outlines:
         land inside the image or any lies behind the camera."""
         cam = np.einsum("fij,pj->fpi", self.w2c[:, :3, :3], pts) + self.w2c[:, None, :3, 3]
         z = cam[..., 2]
-        x, y = cam[..., 0] / np.maximum(z, 1e-9), cam[..., 1] / np.maximum(z, 1e-9)
-        k1, k2, p1, p2 = self.dist[:4]
-        k3 = self.dist[4] if len(self.dist) > 4 else 0.0
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        u = self.k[0, 0] * xd + self.k[0, 2]
-        v = self.k[1, 1] * yd + self.k[1, 2]
+        uv, _ = cv2.projectPoints(cam.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.k, self.dist)
+        uv = np.nan_to_num(uv, nan=-1e6, posinf=1e6, neginf=-1e6)  # a point in the camera's plane: outside
+        u, v = uv.reshape(*z.shape, 2).transpose(2, 0, 1)
         w, h = self.size
         inside = (u >= 2) & (u < w - 2) & (v >= 2) & (v < h - 2) & (z > 1e-6)
         f = np.broadcast_to(np.arange(len(self.frames))[:, None], u.shape)
@@ -113,7 +106,6 @@ class Outlines:
         n = inside.sum(1)
         good = (n >= 0.5 * pts.shape[0]) & (z > 1e-6).all(1)
         return np.where(good, vals.sum(1) / np.maximum(n, 1), np.nan)
-
 
     def hull_distance(self, pts: np.ndarray, i: int) -> float | None:
         """Mean distance (work-size px) from the outline of the points' projected hull in frame i to its mask's
@@ -361,8 +353,7 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
                               f"{np.mean(key_iou) if key_iou else 0.0:.2f}, need {MIN_KEY_IOU}): no flat door or lid")
         return None, fig
     measured = iou >= MIN_FRAME_IOU
-    d = np.unwrap(phi)
-    d -= d[int(np.argmax(measured))]
+    d = unwrapped - unwrapped[int(np.argmax(measured))]
     span = float(np.ptp(d[measured])) if measured.any() else 0.0
     if span > np.pi:  # no door or lid turns further; the path went over to the leaf's mirror image somewhere
         fig["edge_reason"] = (f"its leaf turns {np.degrees(span):.0f} deg over the video, more than a door or lid can: "
@@ -382,13 +373,14 @@ def measure_edge(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: 
     """Object `obj`'s hinge from its outlines and masks over the dataset `ds` (keys: dataset positions of the
     keyframes; confidence (N,): the masks stage's per-frame confidence, frames under `MIN_CONFIDENCE` left out but
     the keyframes); (None, figures with `edge_reason`) when the route cannot measure it."""
-    masks = [ds.load_mask(f)[..., obj] for f in ds.frames]
-    w2c = np.stack([np.linalg.inv(opengl_to_opencv(f.c2w)) for f in ds.frames])
-    views = Views(masks, w2c, ds.intrinsics.K(), ds.intrinsics.dist())
-    trusted = np.ones(len(masks), bool) if confidence is None else np.asarray(confidence) >= MIN_CONFIDENCE
-    trusted[[k for k in keys if k < len(masks)]] = True
-    frames = [i for i, m in enumerate(masks) if trusted[i] and int(m.sum()) >= min_pixels]
-    fit, fig = edge_motion(views, frames, keys, states, known) if frames else (None, {"edge_reason": "the part shows in no frame"})
+    views = views_of(ds, obj)
+    n = len(views.masks)
+    trusted = np.ones(n, bool) if confidence is None else np.asarray(confidence) >= MIN_CONFIDENCE
+    trusted[[k for k in keys if k < n]] = True
+    frames = [i for i, m in enumerate(views.masks) if trusted[i] and int(m.sum()) >= min_pixels]
+    if not frames:
+        return None, {"edge_reason": "the part shows in no frame", "route": "edge", "registered": 0}
+    fit, fig = edge_motion(views, frames, keys, states, known)
     fig["route"] = "edge"
     if fit is None:
         return None, dict(fig, registered=0)

@@ -345,14 +345,18 @@ def silhouette_motion(views: Views, states: np.ndarray, known: np.ndarray, frame
                np.array([i in measured for i in frames]), np.full(len(frames), step), 1.0, {}), fig
 
 
+def views_of(ds, obj: int) -> Views:
+    """Object `obj`'s masks over the dataset's frames with its known cameras (the routes that need no pose)."""
+    w2c = np.stack([np.linalg.inv(opengl_to_opencv(f.c2w)) for f in ds.frames])
+    return Views([ds.load_mask(f)[..., obj] for f in ds.frames], w2c, ds.intrinsics.K(), ds.intrinsics.dist())
+
+
 def measure_silhouettes(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: np.ndarray,
                         min_pixels: int = 400, trust_labels: bool = False) -> tuple[Articulation | None, dict[str, Any]]:
     """Object `obj`'s motion from its masks over the dataset `ds` and its known cameras; states, known, labelled
     (N,) over the dataset's frames. (None, figures with `silhouette_reason`) when the route cannot measure it."""
-    masks = [ds.load_mask(f)[..., obj] for f in ds.frames]
-    w2c = np.stack([np.linalg.inv(opengl_to_opencv(f.c2w)) for f in ds.frames])
-    views = Views(masks, w2c, ds.intrinsics.K(), ds.intrinsics.dist())
-    frames = [i for i, m in enumerate(masks) if int(m.sum()) >= min_pixels]
+    views = views_of(ds, obj)
+    frames = [i for i, m in enumerate(views.masks) if int(m.sum()) >= min_pixels]
     fit, fig = silhouette_motion(views, states, known, frames)
     fig["route"] = "silhouette"
     if fit is None:

@@ -229,6 +229,27 @@ ABSENT = ["the dishwasher", "the TV", "the couch", "the window", "the bathtub", 
           "the bookcase", "the aquarium", "the treadmill", "the car door", "the mailbox", "the piano lid",
           "where the dirty plates get washed", "the thing you watch films on", "where you take a shower",
           "open the window", "close the garage door", "turn on the lamp", "open the front door"]
+# Since the 2026-12-05 change of the rule the two lists above are its development set (their failures were looked
+# at); the set below was written before that change was measured on it and is the held-out one: per object a name,
+# a function and a command (or synonym); absent things phrased the same ways.
+HELDOUT_PRESENT: dict[str, list[str]] = {
+    "fridge door": ["the fridge", "where the butter and eggs are stored", "close the refrigerator"],
+    "top drawer": ["the uppermost drawer", "the drawer where the forks are", "open the upper drawer"],
+    "microwave door": ["the microwave's door", "what you use to reheat last night's dinner", "shut the microwave door"],
+    "oven door": ["the oven", "where the pizza gets baked", "open the oven door"],
+    "bottom drawer": ["the lowest drawer", "the drawer where the pots are kept", "close the bottom drawer"],
+    "cupboard door": ["the kitchen cupboard", "where the plates and bowls are stored", "open the cupboard"],
+    "chest lid": ["the toy chest", "the lid of the wooden box", "lift the chest lid"],
+    "wardrobe left door": ["the left wardrobe door", "the closet's left door", "open the wardrobe's left door"],
+    "wardrobe right door": ["the right wardrobe door", "the right-hand door of the wardrobe",
+                            "close the wardrobe's right door"],
+    "nightstand drawer": ["the night table drawer", "where I keep my reading glasses at night",
+                          "open the drawer of the bedside table"],
+}
+HELDOUT_ABSENT = ["the fireplace", "the bookshelf", "the mirror", "the toaster", "the shower curtain", "the laptop",
+                  "the kitchen sink", "the garden gate", "where you wash your hands", "the thing that plays music",
+                  "what you sleep on", "open the garage", "close the curtains", "open the car boot", "the safe door"]
+QUERY_SETS = {"dev": (PRESENT, ABSENT), "heldout": (HELDOUT_PRESENT, HELDOUT_ABSENT)}
 
 
 def query_set_records(data: str, objects: list[str], described: bool) -> list[dict]:

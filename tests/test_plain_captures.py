@@ -5,6 +5,7 @@ every frame gets a camera in one model, no part is given a motion it does not ha
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -20,9 +21,33 @@ def test_a_plain_hard_capture_keeps_every_frame_and_poses_it_in_one_model(tmp_pa
     cap = write_capture(SynthConfig(frames=48, width=320, height=240, seed=2, **HARD), tmp_path / "cap", progress=False)
     ds = tmp_path / "ds"
     fig = process(cap / "video.mp4", ds, keyframes=cap / "annotations" / "keyframes",
-                  labels=cap / "annotations" / "states.yaml", motions=False)
+                  labels=cap / "annotations" / "states.yaml")
     frames = json.loads((ds / "reports" / "frames.json").read_text())["figures"]
     assert not frames.get("unusable_indices"), frames.get("unusable_indices")  # plain is not blank
     poses = json.loads((ds / "reports" / "poses.json").read_text())["figures"]
     assert fig["registered"] == fig["total"] == 48
     assert poses["models"][0] == 48  # one model holds every frame
+    motions = json.loads((ds / "reports" / "motions.json").read_text())
+    assert set(motions["figures"]["objects"].items()) <= {("fridge door", "hinge"), ("top drawer", "slide")}
+    for step in motions["steps"].values():
+        assert step["routes"], step
+        for route, said in step["routes"].items():
+            reason_agrees_with_figures(route, said, step)
+
+
+def reason_agrees_with_figures(route: str, said: dict, step: dict) -> None:
+    """A route that gave nothing names the test that failed with its own figure: never empty, never a count that
+    contradicts the route's figures or the frames the part shows in."""
+    if said["accepted"]:
+        return
+    reason = said["reason"]
+    assert reason and "no reason recorded" not in reason, (route, said)
+    counts = {"sfm": r"registered at most (\d+) of the (\d+) frames", "pnp": r"located (\d+) of the (\d+) frames"}
+    if route in counts:
+        got, shown = map(int, re.search(counts[route], reason).groups())
+        assert got == said["registered"] and shown == step["frames_shown"], (route, said, step["frames_shown"])
+    if route == "sfm":
+        tried = int(re.search(r"over (\d+) attempt", reason).group(1))
+        assert tried == step["attempts"] >= 1, (reason, step["attempts"])
+    for number, limit in re.findall(r"(\d+(?:\.\d+)?) px from the masks' outlines, need (\d+(?:\.\d+)?)", reason):
+        assert float(number) > float(limit), reason  # refused for a figure on the wrong side of its limit

@@ -241,6 +241,7 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
     best: tuple[Articulation | None, dict[str, Any]] = (None, {"registered": 0})
     order = list(routes) if routes else [cfg.route] + [r for r in ROUTES if r != cfg.route]
     tried: dict[str, dict[str, Any]] = {}
+    attempts = 0
     for route in order:
         if best[0] is not None and best[1]["accepted"]:
             break
@@ -267,11 +268,13 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
                         "reason": fig.get("reason") or fig.get("silhouette_reason") or fig.get("edge_reason")
                         or ("" if fig.get("accepted") else "gave no motion (no reason recorded)"),
                         "seconds": round(time.monotonic() - t0, 1)}
+        if route == "sfm":
+            attempts = fig.get("attempts", 0)
         if motion is not None and (best[0] is None or _better(fig, best[1])):
             best = (motion, fig)
         elif best[0] is None:
             best[1]["registered"] = max(best[1]["registered"], fig.get("registered", 0))
-    best[1].setdefault("attempts", 0)
+    best[1]["attempts"] = attempts  # the reconstructions tried, whichever route's figures these are
     best[1]["routes"] = tried
     best[1].update({f"{r}_registered": v["registered"] for r, v in tried.items()})
     best[1]["seconds"] = round(time.monotonic() - start, 1)

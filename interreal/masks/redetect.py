@@ -22,7 +22,12 @@ object until it is found:
   mask, the candidate does not move with the background while that remnant moves otherwise (the chain's flow
   and one homography each, `Propagator._moves_apart`): a look-alike on the background (a patch of dirt the
   colour of a muddy bike) is not the object;
-- the accepted region is put back into the soft map as the object, and propagation carries on from it.
+- the accepted region is put back into the soft map as the object, and propagation carries on from it;
+- an object that left the view is looked for only where it comes back: when most of what its mask lost as it
+  collapsed went out of the image over a side (the chain's flow from frame to frame takes it past that side) and
+  what is left of it lies at that side, a candidate must reach that side (a door that swung down out of the frame
+  is not the cabinet's rim of its colour in mid-view); the chain reports the exit (`exits`), and the stage has no
+  mask for it until it is back (`verdict.left_view`).
 
 No constant depends on one footage: sizes are relative to the object's own recent size, smoothing and
 distances to the image size, and colour-only acceptance is gated by how well colour separated the labels on
@@ -74,8 +79,9 @@ class Event:
     pos: int
     obj: int
     area: float
-    how: str  # "features" or "colour" (or "refused": a colour find not taken, `Redetector.refusals`)
+    how: str  # "features" or "colour" (or "refused": a colour find not taken, `Redetector.refusals`; "left-view")
     since: int
+    sides: tuple[bool, ...] = ()  # "left-view": the image sides (left, top, right, bottom) it left the view over
 
 
 class Redetector:
@@ -97,6 +103,13 @@ class Redetector:
         self.lost = np.zeros(n_objects, int)
         self.collapsed_at = np.zeros(n_objects, int)  # frame where the current collapse began
         self.where = np.full((n_objects, 2), np.nan)  # last seen centroid (x, y), work pixels
+        # per object and frame over the last `window`, the mask's pixels that the flow from the frame before took
+        # past each side of the image (left, top, right, bottom); the sides it left the view over when most of
+        # what it lost as it collapsed went out over them (`check`), until it is found again
+        self.gone = [deque(maxlen=cfg.window) for _ in range(n_objects)]
+        self.depth = [deque(maxlen=cfg.window) for _ in range(n_objects)]  # ... and how far it reached from each
+        self.exit = np.zeros((n_objects, 4), bool)
+        self.prev = np.where(known > 0.5, labels, 0)  # the labels the previous check left (the keyframe's first)
         for k in range(n_objects):
             mask = (labels == k + 1) & (known > 0.5)
             area = int(mask.sum())
@@ -109,19 +122,27 @@ class Redetector:
         self.events: list[Event] = []
         # each colour find refused because it moved with the background (`check`; `how` "refused")
         self.refusals: list[Event] = []
+        # each collapse that was the object leaving the view over the image border (`how` "left-view")
+        self.exits: list[Event] = []
 
     def check(self, soft: np.ndarray, image: np.ndarray, bins: np.ndarray, pos: int,
-              moves_apart: Callable[[np.ndarray, np.ndarray], bool] | None = None) -> np.ndarray:
+              moves_apart: Callable[[np.ndarray, np.ndarray], bool] | None = None,
+              flow: np.ndarray | None = None) -> np.ndarray:
         """The soft map of frame `pos`, with every collapsed object searched for and, when found, put back.
 
         image: the frame's work-size RGB; bins: its colour bins (`quantize`); moves_apart(region, remnant): False
         when the flow says the region moves with the background where what is left of the object does not
         (`Propagator._moves_apart`). Colour alone finds look-alike background (a dirt track under a muddy bike),
-        so a region found by colour beside a remnant that still moves as the object must move as it does."""
+        so a region found by colour beside a remnant that still moves as the object must move as it does.
+        flow: (h, w, 2) from the frame the chain came from to this one: where most of what a collapsed mask lost
+        went out of the image, the object left the view (a door swung out of it, the camera turned away), and it
+        comes back over that border, not in mid-view (a look-alike of its colour there is not it)."""
         if not self.cfg.enabled:
             return soft
         labels = argmax_labels(soft)
+        out = outflow(self.prev, flow, self.k) if flow is not None and self.prev.shape == labels.shape else None
         for k in range(self.k):
+            self.gone[k].append(out[k] if out is not None else np.zeros(4, int))
             if not self.present[k]:
                 continue  # absent on the keyframe: nothing to remember it by
             mask = labels == k + 1
@@ -131,10 +152,15 @@ class Redetector:
                 self.where[k] = _centroid(mask)
             if recent and area >= self.cfg.collapse * recent:
                 self.sizes[k].append(area)
+                self.depth[k].append(reach_from_sides(mask))
                 self.lost[k] = 0
                 continue
             if self.lost[k] == 0:
                 self.collapsed_at[k] = pos
+                self.exit[k] = self._left_over(k, recent - area, mask if area else self.prev == k + 1)
+                if self.exit[k].any():
+                    self.exits.append(Event(pos, k, area / mask.size, "left-view", pos,
+                                            tuple(bool(v) for v in self.exit[k])))
             self.lost[k] += 1
             found = self._search(k, image, bins, float(np.median(self.sizes[k])) if self.sizes[k] else 0.0)
             if found is None:
@@ -145,12 +171,29 @@ class Redetector:
                 continue
             soft = _reseed(soft, k, region)
             labels = argmax_labels(soft)
+            self.exit[k] = False
             self.sizes[k].clear()
             self.sizes[k].append(int(region.sum()))
             self.where[k] = _centroid(region)
             self.lost[k] = 0
             self.events.append(Event(pos, k, float(region.mean()), how, int(self.collapsed_at[k])))
+        self.prev = labels
         return soft
+
+    def _left_over(self, k: int, shrunk: int, remnant: np.ndarray) -> np.ndarray:
+        """(4,) the image sides object k left the view over as its mask collapsed: most of the `shrunk` pixels it
+        lost over the last `window` frames went out of the image (half or more; over each such side a quarter of
+        them or more), and what is left of it (`remnant`: its mask now, else on the frame before) lies at that side
+        and reaches out from it no farther than `collapse` of how far it reached before (it shrank into the border,
+        as its area did). A door that turns edge-on as it swings past the border keeps a strip in mid-view: not
+        out of the view. None of them when the mask collapsed in view."""
+        none = np.zeros(4, bool)
+        gone = np.sum(list(self.gone[k]), 0) if self.gone[k] else np.zeros(4)
+        if shrunk <= 0 or gone.sum() < 0.5 * shrunk or not remnant.any() or not self.depth[k]:
+            return none
+        before = np.max(list(self.depth[k]), 0)
+        return (gone >= 0.25 * gone.sum()) & border_sides(remnant, self.r) & \
+            (reach_from_sides(remnant) <= self.cfg.collapse * before)
 
     def _memory(self) -> None:
         """The keyframe's colour model (unit weight), how well it separates the labels there, and the ORB features
@@ -193,6 +236,8 @@ class Redetector:
             if not cfg.min_share * h * w <= a <= cfg.max_share * h * w:
                 continue
             region = comp == i
+            if self.exit[k].any() and not (border_sides(region, self.r) & self.exit[k]).any():
+                continue  # it left the view over that border: it comes back over it, not in mid-view
             # score: how surely the region is the object, times its mass (a larger region of the same colour
             # is more of the object than a speck of it), times its nearness to where the object was last seen
             near = 1.0
@@ -235,6 +280,36 @@ class Redetector:
         votes = [int(r[ys, xs].sum()) for r in regions]
         best = int(np.argmax(votes))
         return best if votes[best] >= self.cfg.min_matches else None
+
+
+def outflow(labels: np.ndarray, flow: np.ndarray, n_objects: int) -> np.ndarray:
+    """(n_objects, 4) pixels of each object in `labels` (work size) that `flow` (h, w, 2) takes past the image's
+    left, top, right and bottom side."""
+    h, w = labels.shape
+    out = np.zeros((n_objects, 4), int)
+    x = flow[..., 0] + np.arange(w, dtype=np.float32)[None, :]
+    y = flow[..., 1] + np.arange(h, dtype=np.float32)[:, None]
+    past = [x < 0, y < 0, x > w - 1, y > h - 1]
+    if not any(p.any() for p in past):
+        return out
+    for k in range(n_objects):
+        m = labels == k + 1
+        out[k] = [int((m & p).sum()) for p in past]
+    return out
+
+
+def reach_from_sides(mask: np.ndarray) -> np.ndarray:
+    """(4,) how far a (non-empty) mask reaches from the image's left, top, right and bottom side: the 90th
+    percentile of its pixels' distances to each (a few stray pixels do not count)."""
+    h, w = mask.shape
+    ys, xs = np.nonzero(mask)
+    return np.percentile(np.stack([xs, ys, w - 1 - xs, h - 1 - ys]), 90, axis=1)
+
+
+def border_sides(mask: np.ndarray, margin: int) -> np.ndarray:
+    """(4,) bool: the mask reaches within `margin` px of the image's left, top, right, bottom side."""
+    m = max(int(margin), 1)
+    return np.array([mask[:, :m].any(), mask[:m].any(), mask[:, -m:].any(), mask[-m:].any()])
 
 
 def _centroid(mask: np.ndarray) -> np.ndarray:

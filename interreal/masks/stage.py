@@ -15,7 +15,8 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import atomic, provenance
-from ..conventions import IMAGES_DIR, FRAME_PREFIX, frame_id, frame_index, index_to_onehot, mask_file
+from ..conventions import (IMAGES_DIR, FRAME_PREFIX, frame_id, frame_index, index_to_onehot, mask_file,
+                           onehot_to_index)
 from ..dataset import list_images, read_image_rgb, read_mapping, write_mapping, write_mask
 from ..errors import InputError
 from ..layout import PREVIEWS_DIR, SFM_MASKS_DIR
@@ -31,7 +32,7 @@ from .redetect import Event
 from .soft import disk
 from .track import Propagator, TrackConfig
 from .verdict import MAX_REACH, Cues, RunHealth, assess_run, fine_shares, key_refs
-from ..transients import (IGNORE, clear_transients, split_labels, track_labels, transient_file,
+from ..transients import (IGNORE, clear_transients, read_transient, split_labels, track_labels, transient_file,
                           write_transient)
 from ..transients.auto import AutoLayer, propose
 from ..transients.hands import model_problem, shares
@@ -95,6 +96,8 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
         out = _run_chains(rep, job, cfg, layer, opt.preview, dil, progress)
         hl, health = assess_run(ds, job.fids, job.anchors, job.n_obj, out.cues, out.ref, out.prop,
                                 out.grey is not None, opt.suggest)
+        with rep.step("left_view"):
+            _blank_left_view(job, out, health.blank, opt.preview, dil)
         with rep.step("previews"):
             _write_previews(ds, out, hl, job.n_obj)
         _report(rep, job, out, hl, health, dil)
@@ -271,6 +274,32 @@ def _run_chains(rep: StageReport, job: _Job, cfg: TrackConfig, layer: AutoLayer 
                     cpu_s=round(cpu, 3), cpu_fps=round(len(fids) / max(cpu, 1e-9), 2))
         out.info = dict(info)
     return out
+
+
+def _blank_left_view(job: _Job, out: _Chains, blank: dict[int, list[int]], preview: str, dil: int) -> None:
+    """No mask for an object where it is out of the view (`verdict.left_view`: per object, the frames): whatever
+    the chains left there (a remnant, a look-alike they moved to) is taken out of its mask file, its SfM mask, its
+    preview tiles and its area cue."""
+    n_obj = job.n_obj
+    for pos in sorted({i for frames in blank.values() for i in frames}):
+        objs = [k for k, frames in blank.items() if pos in frames]
+        fid = job.fids[pos]
+        out.cues.area[pos, objs] = 0.0
+        onehot = np.load(mask_file(job.ds, fid))
+        if not onehot[..., objs].any():
+            continue
+        gone = onehot[..., objs].any(-1)
+        onehot[..., objs] = False
+        onehot[..., n_obj] |= gone
+        write_mask(job.ds, fid, onehot)
+        labels = onehot_to_index(onehot)
+        transient = read_transient(job.ds, fid, labels.shape)
+        if transient is not None:
+            labels[transient & (labels == 0)] = n_obj + 1
+        _write_sfm_mask(job.ds, job.images[pos].name, labels, dil)
+        for group, width in ((out.tiles, 240), (out.video, min(480, job.size[0]))):
+            if pos in group and preview != "none":
+                _tile(group, pos, None, job.load, labels, width, fid, out.grey)
 
 
 def _write_previews(ds: Path, out: _Chains, hl: H.Health, n_obj: int) -> None:

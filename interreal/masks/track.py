@@ -141,6 +141,7 @@ class Propagator(StepEvidence):
         self.motion: dict[int, float] = {}  # pair t -> median flow t -> t+1, as a fraction of the work width
         self.redetections: list[Event] = []  # every chain's re-detections (positions, objects), for the report
         self.refusals: list[Event] = []  # ... and its refused colour finds
+        self.exits: list[Event] = []  # ... and where an object left the view over the image border
 
     # -- flow -------------------------------------------------------------------------------------------
     def pair(self, t: int) -> tuple[np.ndarray, np.ndarray]:
@@ -417,10 +418,13 @@ class Propagator(StepEvidence):
         for (`redetect`)."""
         if watch is None:
             return soft
-        n, r = len(watch.events), len(watch.refusals)
+        n, r, e = len(watch.events), len(watch.refusals), len(watch.exits)
+        f, b = self.pair(min(prev, t))
         soft = watch.check(soft, self.cache.work(t), self.cache.bins(t), t,
-                           lambda region, remnant: self._moves_apart(t, prev, region, remnant))
+                           lambda region, remnant: self._moves_apart(t, prev, region, remnant),
+                           f if t > prev else b)
         self.refusals.extend(watch.refusals[r:])
+        self.exits.extend(watch.exits[e:])
         if len(watch.events) > n:
             self.redetections.extend(watch.events[n:])
             soft = self.refine(soft, self.cache.work(t))

@@ -20,6 +20,7 @@ from ..conventions import mask_file
 from ..transients import read_transient
 from . import health as H
 from .confidence import keyframe_reach, next_keyframes, reach_suggestion
+from .redetect import Event, RedetectConfig, border_sides, reach_from_sides
 from .soft import argmax_labels
 from .track import Propagator
 
@@ -42,6 +43,9 @@ class Cues:
         self.thin = np.zeros((n, k))
         self.moved = np.full((n, k), np.nan)  # area share the object's own motion predicts (one-sided chains)
         self.border = np.zeros((n, k), bool)  # the mask reaches the image border (`health.touches_border`)
+        # ... and which sides (left, top, right, bottom) it reaches within `border_band` (`redetect.border_sides`)
+        self.sides = np.zeros((n, k, 4), bool)
+        self.reach = np.zeros((n, k, 4))  # ... and how far (px) it reaches from each (`redetect.reach_from_sides`)
 
     def add(self, res, work: np.ndarray | None, refs: Future) -> None:
         """One frame's cues; `work`: its work-size image (None for a keyframe); `refs`: `key_refs`. Runs on the
@@ -49,6 +53,12 @@ class Cues:
         key_refs: dict[int, H.KeyRef] = refs.result()
         pos = res.pos
         self.border[pos] = H.touches_border(res.labels, self.border.shape[1])
+        band = border_band(res.labels.shape)
+        for k in range(self.sides.shape[1]):
+            m = res.labels == k + 1
+            self.sides[pos, k] = border_sides(m, band)
+            if self.sides[pos, k].any():
+                self.reach[pos, k] = reach_from_sides(m)
         if res.keyframe:
             self.area[pos], self.centroid[pos], self.thin[pos] = key_refs[pos].area, key_refs[pos].centroid, \
                 key_refs[pos].thin
@@ -128,26 +138,97 @@ def occluded_by_transients(ds: Path, fids: list[str], hl: H.Health, n_obj: int,
     return out
 
 
-def left_view(hl: H.Health, border: np.ndarray, area: np.ndarray, n_obj: int) -> dict[int, list[tuple[int, int]]]:
-    """Lost stretches that are the object out of the view: its mask beside the stretch (a frame that is not lost)
-    reaches the image border, and inside the stretch it is empty or still at the border, shrinking out. The keyframes
-    around show the object, but the camera turned away between them: an empty mask there is right. Taken out of the
-    lost state (no warning, no suggested keyframe) with confidence 1. Returns object -> the stretches so relabelled."""
-    out: dict[int, list[tuple[int, int]]] = {}
+def border_band(shape: tuple[int, ...]) -> int:
+    """Px from the image border within which a mask counts as at a side of it (`Cues.sides`): the band the
+    re-detection of an object that left the view looks for its return in (`redetect`), at this image's size."""
+    return max(2, round(RedetectConfig.smooth * max(shape[:2])))
+
+
+def left_view(hl: H.Health, cues: Cues, n_obj: int, is_key: np.ndarray, exits: list[Event], ref: np.ndarray,
+              window: int = RedetectConfig.window) -> tuple[dict[int, list[tuple[int, int]]], dict[int, list[int]]]:
+    """Stretches where the object is out of the view, taken out of the lost state (no warning, no suggested
+    keyframe) with confidence 1. Returns object -> the stretches, and object -> the frames of them whose masks the
+    stage blanks: after an exit the chain measured, all; in a lost stretch, those whose mask is a remnant (under
+    `health.LOST_AREA` of the area `ref` (n, K) the keyframes give), not one lost by its colours alone.
+
+    A lost stretch is out of the view when its mask beside it (a frame that is not lost) reaches the image border
+    and inside it is empty or still at the border, shrinking out: the keyframes around show the object, but the
+    camera turned away between them; or, whatever remnant the chains left inside (a sliver on the look-alike next
+    to where it left), when it shrank into a side of the image just before the stretch (`_shrinks_out`; or grew
+    out of one just after it). And where a chain no keyframe corrects saw the object leave over a side of
+    the image (`exits`: most of what its mask lost went out there, `redetect`), the object is out of the view from
+    the first frame its mask is lost or off that side until it reaches that side again (it comes back over the
+    border it left by) or a keyframe: a mask in mid-view there is a look-alike the chain moved to (a door that
+    swung out of the view given to the rim of the cabinet of its colour), not the object."""
     lost = H.STATES.index("lost")
-    for k in range(min(n_obj, area.shape[1])):
-        kept = []
+    n = len(cues.area)
+    keys = np.flatnonzero(is_key)
+    out: dict[int, list[tuple[int, int]]] = {}
+    blank: dict[int, list[int]] = {}
+    for k in range(min(n_obj, cues.area.shape[1])):
+        taken, wipe = [], set()
         for a, b in hl.stretches["lost"][k]:
-            beside = [i for i in (a - 1, b + 1) if 0 <= i < len(area) and hl.state[i, k] != lost]
-            inside = range(a, b + 1)
-            if any(border[i, k] for i in beside) and all(area[i, k] <= 0 or border[i, k] for i in inside):
-                hl.state[a:b + 1, k] = 0
-                hl.predicted[a:b + 1, k] = 1.0
-                out.setdefault(k, []).append((a, b))
-            else:
-                kept.append((a, b))
-        hl.stretches["lost"][k] = kept
-    return out
+            beside = [i for i in (a - 1, b + 1) if 0 <= i < n and hl.state[i, k] != lost]
+            if any(cues.border[i, k] for i in beside) and \
+                    all(cues.area[i, k] <= 0 or cues.border[i, k] for i in range(a, b + 1)) or \
+                    _shrinks_out(cues, k, a - 1, -1, window) or _shrinks_out(cues, k, b + 1, 1, window):
+                taken.append((a, b))
+                wipe |= {i for i in range(a, b + 1) if cues.area[i, k] < H.LOST_AREA * ref[i, k]}
+        for e in exits:
+            if e.obj == k and len(keys) and not keys[0] < e.pos < keys[-1]:
+                after = _out_after(hl, cues, k, e, 1 if e.pos > keys[-1] else -1, is_key)
+                taken.extend(after)
+                wipe |= {i for a, b in after for i in range(a, b + 1)}
+        if not taken:
+            continue
+        blank[k] = sorted(wipe)
+        frames = np.unique(np.concatenate([np.arange(a, b + 1) for a, b in taken]))
+        hl.state[frames, k] = 0
+        hl.predicted[frames, k] = 1.0
+        out[k] = H.ranges(frames)
+        for st, runs in hl.stretches.items():  # frames out of the view are in no other state
+            runs[k] = H.ranges(np.flatnonzero(hl.state[:, k] == H.STATES.index(st)))
+    return out, blank
+
+
+def _shrinks_out(cues: Cues, k: int, i: int, back: int, window: int) -> bool:
+    """Object k's mask at frame i reaches a side of the image, and on a frame of the `window` before it (looking
+    back in time: `back` -1; +1 with time reversed, for a stretch after it) it was larger and reached farther from
+    that side: it shrank into the border, leaving the view over it."""
+    n = len(cues.area)
+    if not 0 <= i < n or cues.area[i, k] <= 0 or not cues.sides[i, k].any():
+        return False
+    sides = cues.sides[i, k]
+    for j in range(i + back, i + back * (window + 1), back):
+        if 0 <= j < n and cues.area[j, k] > cues.area[i, k] and cues.sides[j, k].any() and \
+                (cues.reach[j, k][sides] > cues.reach[i, k][sides]).any():
+            return True
+    return False
+
+
+def _out_after(hl: H.Health, cues: Cues, k: int, gone: Event, step: int,
+               is_key: np.ndarray) -> list[tuple[int, int]]:
+    """The frames (one stretch, or none) object k is out of the view after it left over `gone.sides`, walking
+    from the exit in the chain's direction `step` (+1 forward after the last keyframe, -1 backward before the
+    first): from the first frame its mask is lost or off those sides (none when it grows back first: it did not
+    leave) until it is at one of them again, not lost, or a keyframe."""
+    sides = np.array(gone.sides, bool)
+    lost = H.STATES.index("lost")
+    start, size = None, cues.area[gone.pos, k]
+    i = gone.pos
+    while 0 <= i < len(is_key) and not is_key[i]:
+        back = cues.area[i, k] > 0 and hl.state[i, k] != lost and bool((cues.sides[i, k] & sides).any())
+        if start is None and not back:
+            start = i
+        elif start is None and cues.area[i, k] > size:
+            return []
+        elif start is not None and back:
+            break
+        i += step
+    if start is None:
+        return []
+    last = i - step
+    return [(min(start, last), max(start, last))]
 
 
 class Cover(NamedTuple):
@@ -231,6 +312,7 @@ class RunHealth:
     motion: np.ndarray
     occluded: dict[int, list[tuple[int, int]]]
     left: dict[int, list[tuple[int, int]]]
+    blank: dict[int, list[int]]  # per object, the frames out of the view whose masks the stage blanks
     reach: list[tuple[int, int, float]]
     far: list[tuple[int, int, float]]
     picks: list[int]
@@ -253,14 +335,16 @@ def assess_run(ds: Path, fids: list[str], anchors: dict[int, np.ndarray], n_obj:
     expected = expected_objects(ref, n)
     hl = H.assess(feats, cues.area, areas, expected, is_key)
     occluded = occluded_by_transients(ds, fids, hl, n_obj) if transients else {}
-    left = left_view(hl, cues.border, cues.area, n_obj)
+    left, blank = left_view(hl, cues, n_obj, is_key, prop.exits, areas)
     reach = keyframe_reach(motion, keys) if n > 1 else []
     far = sorted((x for x in reach if x[2] > MAX_REACH), key=lambda x: -x[2])
     # where a mask collapsed (and was found again, or a look-alike of it was refused) the stage could not hold the
     # object either: after the lost stretches, the first frames to annotate
-    collapsed = [[(e.since, e.pos) for e in prop.redetections + prop.refusals if e.obj == k] for k in range(n_obj)]
+    # (not where the object is out of the view: a collapse there is right)
+    collapsed = [[(e.since, e.pos) for e in prop.redetections + prop.refusals
+                  if e.obj == k and not any(a <= e.since <= b for a, b in left.get(k, []))] for k in range(n_obj)]
     picks = next_keyframes(hl.predicted[:, :n_obj], is_key, suggest,
                            [lost + col for lost, col in zip(hl.stretches["lost"][:n_obj], collapsed)],
                            [reach_suggestion(motion, a, b, keys) for a, b, _ in far[:3]])
-    return hl, RunHealth(feats, areas, expected, is_key, motion, occluded, left, reach, far, picks,
+    return hl, RunHealth(feats, areas, expected, is_key, motion, occluded, left, blank, reach, far, picks,
                          hl.mean_predicted(is_key))

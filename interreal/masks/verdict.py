@@ -20,7 +20,7 @@ from ..conventions import mask_file
 from ..transients import read_transient
 from . import health as H
 from .confidence import keyframe_reach, next_keyframes, reach_suggestion
-from .redetect import Event, RedetectConfig, border_sides, reach_from_sides
+from .redetect import Event, RedetectConfig, reach_from_sides
 from .soft import argmax_labels
 from .track import Propagator
 
@@ -54,11 +54,12 @@ class Cues:
         pos = res.pos
         self.border[pos] = H.touches_border(res.labels, self.border.shape[1])
         band = border_band(res.labels.shape)
+        lab = res.labels
+        strips = [np.unique(x) for x in (lab[:, :band], lab[:band], lab[:, -band:], lab[-band:])]
         for k in range(self.sides.shape[1]):
-            m = res.labels == k + 1
-            self.sides[pos, k] = border_sides(m, band)
+            self.sides[pos, k] = [k + 1 in x for x in strips]  # as `redetect.border_sides`, from the strips alone
             if self.sides[pos, k].any():
-                self.reach[pos, k] = reach_from_sides(m)
+                self.reach[pos, k] = reach_from_sides(lab == k + 1)
         if res.keyframe:
             self.area[pos], self.centroid[pos], self.thin[pos] = key_refs[pos].area, key_refs[pos].centroid, \
                 key_refs[pos].thin

@@ -194,7 +194,7 @@ def test_apply_command(run_dir):
 
 
 def test_ground_query_threshold(run_dir):
-    res = ground_query(run_dir, "laptop", config=RetrievalConfig(threshold=0.99))
+    res = ground_query(run_dir, "the laptop's lid", config=RetrievalConfig(threshold=0.99))
     assert res.best.name == "laptop lid" and not res.ok
 
 
@@ -262,3 +262,38 @@ def test_mask_iou_and_overlay():
     ov = overlay(rgb, a)
     assert ov.shape == rgb.shape and ov.dtype == np.uint8
     assert ov[0, 0].tolist() == [100, 100, 100] and ov[3, 3, 0] > 150 and ov[3, 3, 1] < 100
+
+
+def test_household_kinds_find_functions_and_refuse_other_things_parts(minilm):
+    """Issue 60 (2026-12-05): what the scene's objects read as among household kinds, each with a dictionary
+    definition. By names alone a function finds its object through the kind's definition ("reheat ... dinner": a
+    microwave); a part of a thing the scene does not hold is refused ("the car door" where the doors are a fridge's,
+    an oven's ...), an owner that fits is kept ("the wooden box" is a chest: its definition), and a name word names
+    one thing ("nightstand" owns no bed, so "what you sleep on" is refused)."""
+    from interreal.synth import SynthConfig, build_scene
+    from livescene.language.household import HOUSEHOLD, compound, scene_kinds
+
+    assert compound("the car door") == ("door", "car") and compound("the lid of the trunk") == ("lid", "trunk")
+    assert compound("the wardrobe's left door") == ("door", "wardrobe left") and compound("the door") == ("", "")
+    scene = build_scene(SynthConfig(parts=10, frames=2, width=32, height=24))
+    names = scene.object_names
+    for descriptions in (scene.descriptions, None):
+        index = ObjectIndex.build(names, descriptions, minilm)
+        kinds = scene_kinds(index.name_emb, index.desc_emb, index.names, minilm)
+        owner = {n: {HOUSEHOLD[j] for j in kinds.owner[i]} for i, n in enumerate(names)}
+        assert owner["fridge door"] == {"refrigerator"} and owner["nightstand drawer"] == {"nightstand"}
+        assert owner["top drawer"] == set()  # "top" names no thing: any owner fits it
+        for query, reads in (("the car door", "car"), ("the piano lid", None), ("what you sleep on", "bed"),
+                             ("a purple elephant", None)):
+            res = retrieve(index, query, minilm)
+            assert not res.ok and (reads is None or res.reads_as == reads), (query, res.table(), res.reads_as)
+        for query, expected in (("the lid of the wooden box", "chest lid"), ("the left door of the closet",
+                                "wardrobe left door"), ("the microwave's door", "microwave door"),
+                                ("what you use to reheat last night's dinner", "microwave door"),
+                                ("the refrigerator's door", "fridge door"), ("the upper drawer", "top drawer")):
+            res = retrieve(index, query, minilm)
+            assert res.ok and res.best.name == expected, (query, res.table(), res.reason)
+    with pytest.raises(LiveSceneError, match="no door here belongs to one"):
+        require_match(retrieve(index, "the car door", minilm))
+    res = retrieve(index, "what you use to reheat last night's dinner", minilm)
+    assert res.best.matched == "definition of 'microwave'"  # names alone: the kind's definition found it

@@ -128,7 +128,9 @@ class ClipEncoder:
     def encode(self, texts: list[str]) -> np.ndarray:
         with torch.no_grad():
             if self._kind == "transformers":
-                batch = self._tok(list(texts), padding=True, truncation=True, return_tensors="pt").to(self.device)
+                limit = getattr(self._model.config.text_config, "max_position_embeddings", None)  # what it can read
+                batch = self._tok(list(texts), padding=True, truncation=True, max_length=limit,
+                                  return_tensors="pt").to(self.device)
                 feats = self._model.get_text_features(**batch)
                 if not isinstance(feats, torch.Tensor):  # newer transformers may return a model output
                     feats = feats.pooler_output if getattr(feats, "pooler_output", None) is not None else feats[0]

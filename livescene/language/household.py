@@ -110,9 +110,10 @@ _STOP = {"the", "a", "an", "of", "to", "my", "this", "that", "on", "in", "with",
 class SceneKinds:
     """What the household kinds say about one scene's objects (index order).
 
-    owned[i]: the kinds object i reads as (its name, its description, and each word before its name's last one:
-    "fridge door" -> refrigerator, freezer), each kept by the object closest to it; owner[i]: the kinds those words
-    before the last read as (empty for "top drawer": "top" names no thing); here: every kind some object reads as;
+    owned[i]: the kinds object i reads as (its name's and description's OWN_NEAREST nearest, and the nearest of
+    each word before its name's last one, at OWN_SIM or closer: "fridge door" -> refrigerator, door), each kept by
+    the object closest to it; owner[i]: the kinds those words before the last read as (empty for "top drawer":
+    "top" names no thing); here: every kind some object reads as;
     absent: the kinds no object does (what an absent query may read as)."""
 
     word_emb: np.ndarray  # (K, D) the kinds' words

@@ -62,9 +62,18 @@ def score(motion, fig: dict[str, Any], truth, true_states: np.ndarray) -> dict[s
 
 
 def true_masks(ds, cap: Path) -> None:
-    """The dataset's masks replaced, in memory, by the simulator's instance maps (object k = instance k + 1)."""
+    """The dataset's masks replaced, in memory, by the simulator's instance maps (object k = instance k + 1), and
+    its transient layer by the simulator's occluders (the person and the arm, instance 255)."""
     import cv2
+    from interreal.conventions import frame_index
+    from interreal.motions import silhouette
 
+    def occluders(root, fid: str, hw: tuple[int, int]) -> np.ndarray:
+        inst = cv2.imread(str(cap / "gt" / "instance" / f"{frame_index(fid):05d}.png"), cv2.IMREAD_UNCHANGED)
+        return cv2.resize((inst == 255).astype(np.uint8), hw[::-1], interpolation=cv2.INTER_NEAREST) > 0
+
+    silhouette.has_transients = lambda root: True
+    silhouette.read_transient = occluders
     own = ds.load_mask
 
     def load(f):
@@ -118,12 +127,14 @@ def main() -> int:
                                                             f"walking across ({HARD})")
         p.add_argument("--true-masks", action="store_true", help="the simulator's own masks in place of the "
                                                                   "propagated ones (the routes' ceiling)")
+        p.add_argument("--paint-occluders", action="store_true", help="the keyframes paint the person and the arm "
+                                                                       "as the ignore class (the transient layer)")
 
     args = bench_args("motions", __doc__.splitlines()[0], extra)
     seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else [4, 6] if args.quick else [1, 2, 3, 4, 5, 6]
     frames, size = (90, (480, 360)) if args.quick else (150, (480, 360))
     routes = [r for r in args.routes.split(",") if r]
-    synth = HARD if args.hard else {}
+    synth = dict(HARD if args.hard else {}, **({"paint_occluders": True} if args.paint_occluders else {}))
     runs = []
     for seed in seeds:
         cap, ds = make_dataset(args.out / "_motions_work", seed, frames, size, **synth)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import SimpleNamespace
 
 import cv2
@@ -53,7 +54,7 @@ def capture(kind: str, sweep_deg: float = 60.0, n: int = 50, dist: np.ndarray | 
             m = cv2.remap(m, *lens_map(dist), cv2.INTER_NEAREST)
         frames.append(SimpleNamespace(c2w=opencv_to_opengl(c2w), index=i))
         masks.append(m[..., None] > 0)
-    ds = SimpleNamespace(frames=frames, load_mask=lambda f: masks[f.index],
+    ds = SimpleNamespace(frames=frames, load_mask=lambda f: masks[f.index], root=Path("no-such-dataset"),
                          intrinsics=SimpleNamespace(K=lambda: K, dist=lambda: np.zeros(5) if dist is None else dist))
     labelled = np.zeros(n, bool)
     labelled[[0, 5, 10, 14, 25, 30, 34, 45, 49]] = True

@@ -323,6 +323,9 @@ def test_every_part_gets_a_keyframe():
     lut = np.zeros(256, np.uint8)
     lut[[1, 2, 4]] = [1, 2, 3]
     assert annotation_index(np.array([[0, 1, 2, 4, 255]], np.uint8), lut).tolist() == [[0, 1, 2, 3, 0]]
+    # a careful user paints the person and the arm as the ignore class (what the masks stage propagates as transient)
+    assert annotation_index(np.array([[0, 1, 2, 4, 255]], np.uint8), lut, paint_occluders=True).tolist() == [
+        [0, 1, 2, 3, 254]]
 
 
 def test_ten_parts_annotations_name_only_what_the_video_shows(tmp_path):

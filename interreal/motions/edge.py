@@ -40,10 +40,11 @@ ANGLES = 144          # angle grid of a frame's search (2.5 deg), refined by a p
 SMOOTH = 0.01         # overlap given up per degree the leaf turns between neighbouring frames (dynamic programming)
 STILL = 10.0          # ... this many times more between frames the labels say rest at one state
 MIN_FRAME_IOU = 0.7   # a frame whose best silhouette overlaps its mask less than this is not measured
-MAX_OUTLINE_PX = 3.0  # the turning leaf's outline within this of the masks' (median over frames, work-size px) ...
-OUTLINE_MARGIN = 0.5  # ... and this much closer than a slide's of the same front: a drawer's outline has static
-#                       edges as well (on simulated captures with true masks: doors 0.7-2.8 px, 1.0-2.4 closer than
-#                       a slide; drawers 3.3-4.8 px)
+MAX_OUTLINE_PX = 3.0  # the turning leaf's outline within this of the masks' (median over frames, work-size px)
+SLIDE_MARGIN = 0.05   # ... and its overlap with the masks this much above a slide's of the same front, which takes
+#                       its best reach in each frame, unsmoothed: a drawer's outline has static edges as well (the
+#                       cabinet's opening). Simulated plain captures, exact masks and occluders: doors 0.07-0.14
+#                       above, drawers 0.03 above to 0.14 under.
 KEY_WEIGHT = 5.0      # a keyframe's overlap counts this many frames' in the dynamic programming
 MIN_CONFIDENCE = 0.5  # frames whose mask the masks stage trusts less than this are left out (a plain door's mask
 #                       leaves it within a few frames of a keyframe, and the stage knows: 0.07-0.3 there)
@@ -79,10 +80,17 @@ class Outlines:
         self.dist = np.zeros(5) if views.dist is None else np.asarray(views.dist, float)
         self.size = (int(round(w * scale)), int(round(h * scale)))
         maps, kept = [], []
+        self.hidden: dict[int, np.ndarray] = {}  # per frame, where an occluder (dilated) covers the image
         for i in frames:
             m = cv2.resize(views.masks[i].astype(np.uint8), self.size, interpolation=cv2.INTER_AREA)
             edge = cv2.morphologyEx(m, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
             edge[:2], edge[-2:], edge[:, :2], edge[:, -2:] = False, False, False, False
+            occ = views.occluder(i)
+            if occ is not None and occ.any():  # where an arm cuts the mask, its outline is the arm's, not the part's
+                occ = cv2.dilate(cv2.resize(occ.astype(np.uint8), self.size, interpolation=cv2.INTER_NEAREST),
+                                 np.ones((5, 5), np.uint8)) > 0
+                edge &= ~occ
+                self.hidden[i] = occ
             if edge.sum() >= 10:
                 maps.append(np.minimum(cv2.distanceTransform((~edge).astype(np.uint8), cv2.DIST_L2, 3), TRUNC_PX))
                 kept.append(i)
@@ -90,6 +98,8 @@ class Outlines:
         self.at = {i: n for n, i in enumerate(kept)}
         self.dt = np.stack(maps) if maps else np.zeros((0, self.size[1], self.size[0]), np.float32)
         self.w2c = views.w2c[kept] if kept else np.zeros((0, 4, 4))
+        self.occluded = (np.stack([self.hidden.get(i, np.zeros(self.dt.shape[1:], bool)) for i in kept])
+                         if self.hidden and kept else None)
 
     def distances(self, pts: np.ndarray) -> np.ndarray:
         """(F,) mean outline distance of the points' (P, 3) projections in each frame; NaN where fewer than half
@@ -102,7 +112,10 @@ class Outlines:
         w, h = self.size
         inside = (u >= 2) & (u < w - 2) & (v >= 2) & (v < h - 2) & (z > 1e-6)
         f = np.broadcast_to(np.arange(len(self.frames))[:, None], u.shape)
-        vals = np.where(inside, self.dt[f, np.clip(v, 0, h - 1).astype(int), np.clip(u, 0, w - 1).astype(int)], 0.0)
+        at = (f, np.clip(v, 0, h - 1).astype(int), np.clip(u, 0, w - 1).astype(int))
+        if self.occluded is not None:  # behind an occluder: not seen, neither near nor far from the outline
+            inside &= ~self.occluded[at]
+        vals = np.where(inside, self.dt[at], 0.0)
         n = inside.sum(1)
         good = (n >= 0.5 * pts.shape[0]) & (z > 1e-6).all(1)
         return np.where(good, vals.sum(1) / np.maximum(n, 1), np.nan)
@@ -122,6 +135,11 @@ class Outlines:
         if inside.sum() < 10:
             return None
         s = samples[inside].astype(int)
+        hidden = self.hidden.get(i)
+        if hidden is not None:  # samples behind an occluder say nothing of the part's outline
+            s = s[~hidden[s[:, 1], s[:, 0]]]
+            if len(s) < 10:
+                return None
         return float(self.dt[n][s[:, 1], s[:, 0]].mean())
 
 
@@ -220,11 +238,15 @@ def smooth_path(curves: np.ndarray, angles: np.ndarray, still: np.ndarray | None
     turn costs `STILL` times more. Why the labels' stillness: a leaf and its mirror image about the plane through its
     axis and the camera cast nearly one silhouette, and the mirror turns as the camera moves; where the part rests,
     only the true leaf stays put."""
+    return _viterbi(curves, angles, np.zeros(len(curves), bool) if still is None else still)[0]
+
+
+def _viterbi(curves: np.ndarray, angles: np.ndarray, still: np.ndarray) -> tuple[np.ndarray, float]:
+    """`smooth_path`'s grid positions and their total score."""
     step = np.degrees(angles[1] - angles[0])
     n = len(angles)
     diff = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :])
     jump = SMOOTH * step * np.minimum(diff, n - diff)  # (A, A)
-    still = np.zeros(len(curves), bool) if still is None else still
     score = curves[0].copy()
     back = np.zeros(curves.shape, int)
     for f in range(1, len(curves)):
@@ -235,6 +257,33 @@ def smooth_path(curves: np.ndarray, angles: np.ndarray, still: np.ndarray | None
     path[-1] = int(np.argmax(score))
     for f in range(len(curves) - 1, 0, -1):
         path[f - 1] = back[f, path[f]]
+    return path, float(score.max())
+
+
+def anchored_path(curves: np.ndarray, angles: np.ndarray, still: np.ndarray, ends: list[np.ndarray]) -> np.ndarray:
+    """`smooth_path` where the frames of each of `ends` (bool (F,) each: the frames labelled closed, those labelled
+    fully open) share one angle, give or take what a turn between neighbours at rest costs: every grid angle tried
+    as the first end's, the best total kept, then the next end's with it. Why: the mirror image turns with the
+    camera, so it cannot sit at one angle in frames at one end filmed from different places, however far apart in
+    time (a door closed at the start, in the middle and at the end)."""
+    step = np.degrees(angles[1] - angles[0])
+    n = len(angles)
+    diff = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :])
+    away = STILL * SMOOTH * step * np.minimum(diff, n - diff)  # (A, A): from the shared angle (rows)
+    held = curves.copy()
+    path = smooth_path(curves, angles, still)
+    for end in ends:
+        if end.sum() < 2:
+            continue
+        best: tuple[float, int, np.ndarray] = (-np.inf, 0, path)
+        for c in range(n):
+            trial = held.copy()
+            trial[end] -= away[c]
+            p, score = _viterbi(trial, angles, still)
+            if score > best[0]:
+                best = (score, c, p)
+        held[end] -= away[best[1]]
+        path = best[2]
     return path
 
 
@@ -272,11 +321,12 @@ def fit_leaf(sil: Silhouettes, line: Line, frames: list[int], keys: list[int]) -
 
 
 def slide_rival(sil: Silhouettes, out: Outlines, leaf: Leaf, size: np.ndarray, frames: list[int], rest: float
-                ) -> float:
-    """The median outline distance (px) of the best slide of the leaf's front as it rests (at angle `rest`, give or
-    take 10 deg, and up to a third of its width in front of or behind the line): pulled along its normal by each
-    frame's best amount (the prism between its rest and its moved place). A drawer's outline has static edges too
-    (the cabinet's opening), and a turning leaf covers much of a drawer's silhouette; their outlines differ."""
+                ) -> tuple[float, float, list[int]]:
+    """The median outline distance (px), the mean overlap and the frames judged of the best slide of the leaf's
+    front as it rests (at angle `rest`, give or take 10 deg, and up to a third of its width in front of or behind
+    the line): pulled along its normal by each frame's best amount (the prism between its rest and its moved
+    place). A drawer's outline has static edges too (the cabinet's opening), and a turning leaf covers much of a
+    drawer's silhouette; the slide explains a drawer's masks better."""
     some = frames[::max(1, len(frames) // 24)]
     width = size[0] * leaf.length
     reach = np.linspace(0.0, 1.5, 31) * width
@@ -297,7 +347,7 @@ def slide_rival(sil: Silhouettes, out: Outlines, leaf: Leaf, size: np.ndarray, f
                 if total > best[0]:
                     best = (total, shapes)
     dist = [d for i, q in zip(some, best[1]) if (d := out.hull_distance(q, i)) is not None]
-    return float(np.median(dist)) if dist else TRUNC_PX
+    return (float(np.median(dist)) if dist else TRUNC_PX), best[0] / len(some), some
 
 
 def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.ndarray | None = None,
@@ -324,26 +374,33 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
     leaf = Leaf(line)
     angles = np.linspace(-np.pi, np.pi, ANGLES, endpoint=False)
     curves = iou_curves(sil, leaf, size, shown, angles)
-    still, closed = np.zeros(len(shown), bool), np.zeros(len(shown), bool)
+    still, closed, opened = np.zeros(len(shown), bool), np.zeros(len(shown), bool), np.zeros(len(shown), bool)
     if states is not None and known is not None:
         at = np.array(shown)
         still[1:] = known[at[1:]] & known[at[:-1]] & (np.abs(states[at[1:]] - states[at[:-1]]) < 1e-6)
-        if known[at].any():  # the frames at the lowest labelled state: where it rests closed
+        if known[at].any():  # the frames at the lowest labelled state: where it rests closed; the highest: open
             closed = known[at] & (states[at] <= states[at][known[at]].min() + 1e-6)
+            opened = known[at] & (states[at] >= states[at][known[at]].max() - 1e-6) & ~closed
     weight = np.array([KEY_WEIGHT if i in keys else 1.0 for i in shown])[:, None]  # a person drew those masks
-    path = smooth_path(curves * weight, angles, still)
+    path = anchored_path(curves * weight, angles, still, [closed, opened])
     phi = np.array([refine(curves[f], j, angles) for f, j in enumerate(path)])
     iou = curves[np.arange(len(shown)), path]
     hinge_px = [d for i, a in zip(shown, phi) if (d := out.hull_distance(leaf.corners(*size, a), i)) is not None]
     hinge_px = float(np.median(hinge_px)) if hinge_px else TRUNC_PX
     unwrapped = np.unwrap(phi)
     rest = float(np.median(unwrapped[closed if closed.any() else still if still.any() else slice(0, 1)]))
-    slide_px = slide_rival(coarse, out, leaf, size, shown, rest)
-    fig.update(edge_outline_px=round(hinge_px, 2), edge_slide_outline_px=round(slide_px, 2))
-    if hinge_px > MAX_OUTLINE_PX or hinge_px > slide_px - OUTLINE_MARGIN:
+    slide_px, slide_iou, some = slide_rival(coarse, out, leaf, size, shown, rest)
+    hinge_iou = float(np.mean([coarse.iou(leaf.corners(*size, phi[shown.index(i)]), i) for i in some]))
+    fig.update(edge_outline_px=round(hinge_px, 2), edge_slide_outline_px=round(slide_px, 2),
+               edge_hinge_iou=round(hinge_iou, 3), edge_slide_iou=round(slide_iou, 3))
+    if hinge_px > MAX_OUTLINE_PX:
         fig["edge_reason"] = (f"a leaf turning on its static edge does not trace its outline (median {hinge_px:.1f} px "
-                              f"from the masks' outlines, need {MAX_OUTLINE_PX:g}, and {OUTLINE_MARGIN:g} px closer "
-                              f"than a slide's {slide_px:.1f}): no flat door or lid (a drawer?)")
+                              f"from the masks' outlines, need {MAX_OUTLINE_PX:g}): no flat door or lid")
+        return None, fig
+    if hinge_iou < slide_iou + SLIDE_MARGIN:
+        fig["edge_reason"] = (f"a slide of its front explains the masks as well as a leaf turning on its static edge "
+                              f"(overlap {slide_iou:.2f} against {hinge_iou:.2f}, need {SLIDE_MARGIN:g} less): a drawer, "
+                              f"not a flat door or lid")
         return None, fig
     key_iou = [float(v) for i, v in zip(shown, iou) if i in keys]
     fig.update(edge_line_px=round(line.cost, 2), edge_leaf=[round(float(v), 3) for v in size],

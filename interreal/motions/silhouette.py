@@ -29,6 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from ..conventions import opengl_to_opencv
 from ..dataset import Articulation
+from ..transients import has_transients, read_transient
 from .fit import Fit, articulate
 
 FACE_PX = 2.0          # the front's corners must reproject within this (median, full-size pixels) ...
@@ -52,12 +53,17 @@ STEPS = 45             # grid points of the per-frame search (then refined by a 
 @dataclass
 class Views:
     """Per frame: the part's mask (h, w) bool, world -> camera (4, 4) in OpenCV axes; one K (3, 3) and OpenCV
-    distortion (k1, k2, p1, p2[, k3]; None: a pinhole)."""
+    distortion (k1, k2, p1, p2[, k3]; None: a pinhole); `occluders`: per frame what is known to stand in front of
+    everything (a hand, an arm, a person: the transient layer), or None."""
 
     masks: list[np.ndarray]
     w2c: np.ndarray
     K: np.ndarray
     dist: np.ndarray | None = None
+    occluders: list[np.ndarray | None] | None = None
+
+    def occluder(self, i: int) -> np.ndarray | None:
+        return None if self.occluders is None else self.occluders[i]
 
 
 def front_corners(mask: np.ndarray) -> np.ndarray | None:
@@ -271,17 +277,24 @@ class Silhouettes:
         self.pose = {i: (cv2.Rodrigues(views.w2c[i][:3, :3])[0], views.w2c[i][:3, 3]) for i in frames}
         self.w2c = {i: views.w2c[i] for i in frames}
         self.crop: dict[int, tuple[int, int, np.ndarray]] = {}
+        self.hidden: dict[int, np.ndarray] = {}  # the crop's pixels an occluder covers
         for i in frames:
-            m = views.masks[i]
-            if self.scale < 1:
-                m = cv2.resize(m.astype(np.uint8), None, fx=self.scale, fy=self.scale,
-                               interpolation=cv2.INTER_AREA) > 0
+            m = self._small(views.masks[i])
             ys, xs = np.nonzero(m)
             if not len(xs):
                 continue
             mx, my = (np.ptp(xs) + 1) // 2 + 2, (np.ptp(ys) + 1) // 2 + 2
             x0, y0 = max(0, xs.min() - mx), max(0, ys.min() - my)
-            self.crop[i] = (x0, y0, m[y0:ys.max() + 1 + my, x0:xs.max() + 1 + mx])
+            box = np.s_[y0:ys.max() + 1 + my, x0:xs.max() + 1 + mx]
+            self.crop[i] = (x0, y0, m[box])
+            occ = views.occluder(i)
+            if occ is not None and occ.any():
+                self.hidden[i] = self._small(occ)[box] & ~m[box]
+
+    def _small(self, m: np.ndarray) -> np.ndarray:
+        if self.scale >= 1:
+            return m.astype(bool)
+        return cv2.resize(m.astype(np.uint8), None, fx=self.scale, fy=self.scale, interpolation=cv2.INTER_AREA) > 0
 
     def iou(self, pts: np.ndarray, i: int) -> float:
         x0, y0, m = self.crop[i]
@@ -293,6 +306,9 @@ class Silhouettes:
         pred = np.zeros(m.shape, np.uint8)
         cv2.fillConvexPoly(pred, cv2.convexHull(np.round(uv * 16).astype(np.int32)), 1, shift=4)
         pred = pred > 0
+        hidden = self.hidden.get(i)
+        if hidden is not None:  # an arm in front of the part is no evidence against it there
+            pred &= ~hidden
         union = int((pred | m).sum())
         return float((pred & m).sum()) / union if union else 0.0
 
@@ -346,9 +362,13 @@ def silhouette_motion(views: Views, states: np.ndarray, known: np.ndarray, frame
 
 
 def views_of(ds, obj: int) -> Views:
-    """Object `obj`'s masks over the dataset's frames with its known cameras (the routes that need no pose)."""
+    """Object `obj`'s masks over the dataset's frames with its known cameras (the routes that need no pose), and
+    the transient layer (hands, arms, people: painted or found) as what stands in front of it."""
     w2c = np.stack([np.linalg.inv(opengl_to_opencv(f.c2w)) for f in ds.frames])
-    return Views([ds.load_mask(f)[..., obj] for f in ds.frames], w2c, ds.intrinsics.K(), ds.intrinsics.dist())
+    masks = [ds.load_mask(f)[..., obj] for f in ds.frames]
+    occluders = ([read_transient(ds.root, f.fid, m.shape) for f, m in zip(ds.frames, masks)]
+                 if has_transients(ds.root) else None)
+    return Views(masks, w2c, ds.intrinsics.K(), ds.intrinsics.dist(), occluders)
 
 
 def measure_silhouettes(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: np.ndarray,

@@ -26,6 +26,7 @@ from .. import __version__, atomic
 from ..conventions import fid_of_index, frame_name
 from ..dataset import Intrinsics
 from ..errors import DatasetError, InputError
+from ..transients import IGNORE
 from ..video import VideoWriter
 from .config import SynthConfig
 from .scene import RenderResult, Scene, build_scene
@@ -58,12 +59,18 @@ def label_indices(frames: int, fraction: float, keyframes: list[int]) -> list[in
     return sorted(set(spread) | set(keyframes))
 
 
-def annotation_index(instance: np.ndarray, lut: np.ndarray | None = None) -> np.ndarray:
-    """Keyframe mask a person would draw: the truth with the occluding person as background; `lut` (256,) renumbers
-    the parts when some never appear (a person names only what the video shows)."""
+def annotation_index(instance: np.ndarray, lut: np.ndarray | None = None, paint_occluders: bool = False
+                     ) -> np.ndarray:
+    """Keyframe mask a person would draw: the truth with the occluding person and arm as background, or as the
+    ignore class when `paint_occluders`; `lut` (256,) renumbers the parts when some never appear (a person names
+    only what the video shows)."""
+    occluded = instance == 255
     out = instance.copy()
-    out[out == 255] = 0
-    return out if lut is None else lut[out]
+    out[occluded] = 0
+    out = out if lut is None else lut[out]
+    if paint_occluders:
+        out[occluded] = IGNORE
+    return out
 
 
 def _encode_png(img: np.ndarray, level: int = 1) -> bytes:
@@ -140,7 +147,8 @@ def write_capture(cfg: SynthConfig, out_dir: str | Path, progress: bool = True,
                 (gt / "instance" / f"{fid}.png").write_bytes(inst_png)
                 visible_px[i] = np.bincount(r.instance.ravel(), minlength=256)[1:len(names) + 1]
                 if i in key_set:
-                    (ann / "keyframes" / f"{fid}.png").write_bytes(_encode_png(annotation_index(r.instance), 3))
+                    key = annotation_index(r.instance, paint_occluders=cfg.paint_occluders)
+                    (ann / "keyframes" / f"{fid}.png").write_bytes(_encode_png(key, 3))
                 encode_s += t2 - t1
                 write_s += time.perf_counter() - t2
                 bar.update(1)
@@ -164,7 +172,7 @@ def write_capture(cfg: SynthConfig, out_dir: str | Path, progress: bool = True,
         for i in extra if lut is None else sorted(set(keyframes) | set(extra)):
             fid = fid_of_index(i)
             inst = cv2.imread(str(gt / "instance" / f"{fid}.png"), cv2.IMREAD_UNCHANGED)
-            (ann / "keyframes" / f"{fid}.png").write_bytes(_encode_png(annotation_index(inst, lut), 3))
+            (ann / "keyframes" / f"{fid}.png").write_bytes(_encode_png(annotation_index(inst, lut, cfg.paint_occluders), 3))
         keyframes = sorted(set(keyframes) | set(extra))
         intr = scene.intrinsics
         mapping = {i: name for i, name in enumerate(names)}

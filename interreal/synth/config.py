@@ -51,6 +51,8 @@ class SynthConfig:
     occluder: float = option(0.0, "fraction of frames a person walks across the view, 0-1")
     arm: bool = option(False, "a hand and a sleeved forearm reach in from the image edge and hold each part while "
                               "it moves (in front of it, as in a real capture)")
+    paint_occluders: bool = option(False, "keyframes paint the person and the arm as the ignore class, as a careful "
+                                          "user does in the annotate app (otherwise they are left as background)")
     articulation: float = option(1.0, "scale of each part's range of motion (angle / slide length)")
     room_scale: float = option(1.0, "room floor plan and camera distance x this, 0.65-2.5; furniture keeps its size "
                                     "(1: 6 x 5 m; 0.7 small, 1.6 large)")

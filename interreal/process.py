@@ -20,7 +20,7 @@ from .motions import estimate_motions, part_line
 from .options import add_flags, options_of, values_from_args
 from .labels import add_unit_arguments, import_labels, parse_range, read_label_file
 from .labels.prompts import find_prompts, import_prompts, read_prompt_file
-from .masks import propagate, transient_line
+from .masks import left_view_lines, propagate, transient_line
 from .report import StageReport, read_report, warning_lines
 from .sfm import add_sfm_options, estimate_poses, sfm_options, summary_lines
 
@@ -165,7 +165,8 @@ def stage_summary(ds: Path, stage: str) -> str | None:
                 + ("; predicted J " + ", ".join(f"{n} {v:.2f}" for n, v in mean.items()) if mean else "")
                 + (f"; suggested keyframes {', '.join(map(str, f['suggested_frames'][:5]))}"
                    if f.get("suggested_frames") else "")
-                + (f"\n  {transients}" if transients else ""))
+                + (f"\n  {transients}" if transients else "")
+                + "".join(f"\n  {line}" for line in left_view_lines(f)))
     if stage == "labels":
         return (f"labels: {f.get('imported', '?')} imported, {f.get('labels', '?')} in the dataset"
                 + (f" for {', '.join(f['objects'])}" if f.get("objects") else "")

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -22,6 +24,7 @@ from interreal.masks import main as masks_main
 from interreal.masks.appearance import AppearanceConfig, quantize
 from interreal.masks.redetect import RedetectConfig, Redetector, border_sides, outflow, reach_from_sides
 from interreal.masks.soft import anchor_soft
+from interreal.process import stage_summary
 from interreal.report import read_report
 from test_masks import make_ds, write_keys
 
@@ -175,3 +178,11 @@ def test_a_chain_tells_an_exit_over_the_border_from_a_collapse_in_view():
     assert [(e.pos, e.how) for e in det.events] == [(4, "colour")]
     det = _chain((40, 80, 60, 64), (40, 80, 100, 140))
     assert det.exits == [] and [(e.pos, e.how) for e in det.events] == [(4, "colour")]
+
+
+def test_process_says_which_objects_left_the_view(tmp_path: Path):
+    (tmp_path / "reports").mkdir()
+    (tmp_path / "reports" / "masks.json").write_text(json.dumps({"figures": {
+        "frames": 48, "keyframes": ["frame_00000"], "left_view": {"door": "frame_00026-frame_00047", "drawer": ""}}}))
+    text = stage_summary(tmp_path, "masks")
+    assert "door: out of the view at frames frame_00026-frame_00047" in text and "drawer" not in text

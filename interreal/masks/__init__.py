@@ -15,9 +15,9 @@ from pathlib import Path
 from ..report import warning_lines
 from ..options import add_flags, values_from_args
 from .config import MasksConfig
-from .stage import propagate, transient_line
+from .stage import left_view_lines, propagate, transient_line
 
-__all__ = ["MasksConfig", "propagate", "transient_line", "add_arguments", "main", "masks_options"]
+__all__ = ["MasksConfig", "left_view_lines", "propagate", "transient_line", "add_arguments", "main", "masks_options"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -61,8 +61,8 @@ def main(args: argparse.Namespace) -> int:
         print(f"  {line} -> {args.dataset / 'transients'}")
     for name, frames in (tr.get("occluded") or {}).items():
         print(f"  {name}: hidden behind the person / hand at frames {frames} (occluded, not lost)")
-    for name, frames in (fig.get("left_view") or {}).items():
-        print(f"  {name}: out of the view at frames {frames} (it left over the image border; not lost)")
+    for line in left_view_lines(fig):
+        print(f"  {line}")
     for name, frames in (fig.get("redetected") or {}).items():
         if frames:
             print(f"  {name}: found again after its mask collapsed at frames {', '.join(frames[:8])}")

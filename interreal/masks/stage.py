@@ -476,6 +476,12 @@ def transient_line(figures: dict[str, Any]) -> str | None:
             f"average (at most {100 * tr.get('max_share', 0.0):.0f} %)" + (f" ({'; '.join(how)})" if how else ""))
 
 
+def left_view_lines(figures: dict[str, Any]) -> list[str]:
+    """One line per object that left the view over the image border (its masks blank there, not lost)."""
+    return [f"{name}: out of the view at frames {frames} (it left over the image border; not lost)"
+            for name, frames in (figures.get("left_view") or {}).items() if frames]
+
+
 def _write_frame(ds: Path, fid: str, image_name: str, labels: np.ndarray, n_obj: int, dilate: int) -> None:
     """One frame's files: its mask, its transient layer (when any) and its SfM mask."""
     objects, transient = split_labels(labels, n_obj)

@@ -8,6 +8,7 @@ import json
 import re
 from pathlib import Path
 
+import cv2
 import pytest
 
 HARD = {"furniture": "plain", "exposure_drift": 0.2, "noise": 3.0, "occluder": 0.3, "arm": True}
@@ -27,12 +28,27 @@ def test_a_plain_hard_capture_keeps_every_frame_and_poses_it_in_one_model(tmp_pa
     poses = json.loads((ds / "reports" / "poses.json").read_text())["figures"]
     assert fig["registered"] == fig["total"] == 48
     assert poses["models"][0] == 48  # one model holds every frame
+    masks = json.loads((ds / "reports" / "masks.json").read_text())["figures"]
+    for name, frames in (masks.get("left_view") or {}).items():  # out of the view only where it is: the painted
+        k = masks["objects"].index(name) + 1  # door cut by the border whose mask collapsed stays in view, 'lost'
+        for f in frames_in(frames):
+            inst = cv2.imread(str(cap / "gt" / "instance" / f"{f:05d}.png"), cv2.IMREAD_UNCHANGED)
+            assert (inst == k).mean() < 0.01, (name, f, (inst == k).mean())
     motions = json.loads((ds / "reports" / "motions.json").read_text())
     assert set(motions["figures"]["objects"].items()) <= {("fridge door", "hinge"), ("top drawer", "slide")}
     for step in motions["steps"].values():
         assert step["routes"], step
         for route, said in step["routes"].items():
             reason_agrees_with_figures(route, said, step)
+
+
+def frames_in(text: str) -> list[int]:
+    """'5-27, 30' -> [5, ..., 27, 30] (the masks report's stretches of frame numbers)."""
+    out = []
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        a, _, b = part.partition("-")
+        out.extend(range(int(a), int(b or a) + 1))
+    return out
 
 
 def reason_agrees_with_figures(route: str, said: dict, step: dict) -> None:

@@ -20,7 +20,7 @@ from ..conventions import mask_file
 from ..transients import read_transient
 from . import health as H
 from .confidence import keyframe_reach, next_keyframes, reach_suggestion
-from .redetect import Event, RedetectConfig, reach_from_sides
+from .redetect import Event, RedetectConfig
 from .soft import argmax_labels
 from .track import Propagator
 
@@ -45,7 +45,6 @@ class Cues:
         self.border = np.zeros((n, k), bool)  # the mask reaches the image border (`health.touches_border`)
         # ... and which sides (left, top, right, bottom) it reaches within `border_band` (`redetect.border_sides`)
         self.sides = np.zeros((n, k, 4), bool)
-        self.reach = np.zeros((n, k, 4))  # ... and how far (px) it reaches from each (`redetect.reach_from_sides`)
 
     def add(self, res, work: np.ndarray | None, refs: Future) -> None:
         """One frame's cues; `work`: its work-size image (None for a keyframe); `refs`: `key_refs`. Runs on the
@@ -58,8 +57,6 @@ class Cues:
         strips = [np.unique(x) for x in (lab[:, :band], lab[:band], lab[:, -band:], lab[-band:])]
         for k in range(self.sides.shape[1]):
             self.sides[pos, k] = [k + 1 in x for x in strips]  # as `redetect.border_sides`, from the strips alone
-            if self.sides[pos, k].any():
-                self.reach[pos, k] = reach_from_sides(lab == k + 1)
         if res.keyframe:
             self.area[pos], self.centroid[pos], self.thin[pos] = key_refs[pos].area, key_refs[pos].centroid, \
                 key_refs[pos].thin
@@ -145,8 +142,8 @@ def border_band(shape: tuple[int, ...]) -> int:
     return max(2, round(RedetectConfig.smooth * max(shape[:2])))
 
 
-def left_view(hl: H.Health, cues: Cues, n_obj: int, is_key: np.ndarray, exits: list[Event], ref: np.ndarray,
-              window: int = RedetectConfig.window) -> tuple[dict[int, list[tuple[int, int]]], dict[int, list[int]]]:
+def left_view(hl: H.Health, cues: Cues, n_obj: int, is_key: np.ndarray, exits: list[Event], ref: np.ndarray
+              ) -> tuple[dict[int, list[tuple[int, int]]], dict[int, list[int]]]:
     """Stretches where the object is out of the view, taken out of the lost state (no warning, no suggested
     keyframe) with confidence 1. Returns object -> the stretches, and object -> the frames of them whose masks the
     stage blanks: after an exit the chain measured, all; in a lost stretch, those whose mask is a remnant (under
@@ -154,9 +151,10 @@ def left_view(hl: H.Health, cues: Cues, n_obj: int, is_key: np.ndarray, exits: l
 
     A lost stretch is out of the view when its mask beside it (a frame that is not lost) reaches the image border
     and inside it is empty or still at the border, shrinking out: the keyframes around show the object, but the
-    camera turned away between them; or, whatever remnant the chains left inside (a sliver on the look-alike next
-    to where it left), when it shrank into a side of the image just before the stretch (`_shrinks_out`; or grew
-    out of one just after it). And where a chain no keyframe corrects saw the object leave over a side of
+    camera turned away between them. A mask that shrank into a side before a lost stretch is not enough: a plain
+    door cut by the border whose mask collapses while it stays in view does that too (a false 'out of the view'
+    hides a failure, a false 'lost' asks for a keyframe). And where a chain no keyframe corrects saw the object
+    leave over a side of
     the image (`exits`: most of what its mask lost went out there, `redetect`), the object is out of the view from
     the first frame its mask is lost or off that side until it reaches that side again (it comes back over the
     border it left by) or a keyframe: a mask in mid-view there is a look-alike the chain moved to (a door that
@@ -171,8 +169,7 @@ def left_view(hl: H.Health, cues: Cues, n_obj: int, is_key: np.ndarray, exits: l
         for a, b in hl.stretches["lost"][k]:
             beside = [i for i in (a - 1, b + 1) if 0 <= i < n and hl.state[i, k] != lost]
             if any(cues.border[i, k] for i in beside) and \
-                    all(cues.area[i, k] <= 0 or cues.border[i, k] for i in range(a, b + 1)) or \
-                    _shrinks_out(cues, k, a - 1, -1, window) or _shrinks_out(cues, k, b + 1, 1, window):
+                    all(cues.area[i, k] <= 0 or cues.border[i, k] for i in range(a, b + 1)):
                 taken.append((a, b))
                 wipe |= {i for i in range(a, b + 1) if cues.area[i, k] < H.LOST_AREA * ref[i, k]}
         for e in exits:
@@ -190,21 +187,6 @@ def left_view(hl: H.Health, cues: Cues, n_obj: int, is_key: np.ndarray, exits: l
         for st, runs in hl.stretches.items():  # frames out of the view are in no other state
             runs[k] = H.ranges(np.flatnonzero(hl.state[:, k] == H.STATES.index(st)))
     return out, blank
-
-
-def _shrinks_out(cues: Cues, k: int, i: int, back: int, window: int) -> bool:
-    """Object k's mask at frame i reaches a side of the image, and on a frame of the `window` before it (looking
-    back in time: `back` -1; +1 with time reversed, for a stretch after it) it was larger and reached farther from
-    that side: it shrank into the border, leaving the view over it."""
-    n = len(cues.area)
-    if not 0 <= i < n or cues.area[i, k] <= 0 or not cues.sides[i, k].any():
-        return False
-    sides = cues.sides[i, k]
-    for j in range(i + back, i + back * (window + 1), back):
-        if 0 <= j < n and cues.area[j, k] > cues.area[i, k] and cues.sides[j, k].any() and \
-                (cues.reach[j, k][sides] > cues.reach[i, k][sides]).any():
-            return True
-    return False
 
 
 def _out_after(hl: H.Health, cues: Cues, k: int, gone: Event, step: int,

@@ -62,11 +62,11 @@ def score(motion, fig: dict[str, Any], truth, true_states: np.ndarray) -> dict[s
 
 
 def true_masks(ds, cap: Path) -> None:
-    """The dataset's masks replaced, in memory, by the simulator's instance maps (object k = instance k + 1), and
-    its transient layer by the simulator's occluders (the person and the arm, instance 255)."""
+    """The dataset's masks replaced, in memory, by the simulator's instance maps (object k = instance k + 1), all
+    trusted, and its transient layer by the simulator's occluders (the person and the arm, instance 255)."""
     import cv2
     from interreal.conventions import frame_index
-    from interreal.motions import silhouette
+    from interreal.motions import silhouette, stage
 
     def occluders(root, fid: str, hw: tuple[int, int]) -> np.ndarray:
         inst = cv2.imread(str(cap / "gt" / "instance" / f"{frame_index(fid):05d}.png"), cv2.IMREAD_UNCHANGED)
@@ -74,6 +74,7 @@ def true_masks(ds, cap: Path) -> None:
 
     silhouette.has_transients = lambda root: True
     silhouette.read_transient = occluders
+    stage.mask_confidence = lambda ds, obj: None  # the propagated masks' confidence says nothing of the truth
     own = ds.load_mask
 
     def load(f):

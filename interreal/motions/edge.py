@@ -80,7 +80,7 @@ class Outlines:
         self.dist = np.zeros(5) if views.dist is None else np.asarray(views.dist, float)
         self.size = (int(round(w * scale)), int(round(h * scale)))
         maps, kept = [], []
-        self.hidden: dict[int, np.ndarray] = {}  # per frame, where an occluder (dilated) covers the image
+        hidden: dict[int, np.ndarray] = {}  # per frame, where an occluder (dilated) covers the image
         for i in frames:
             m = cv2.resize(views.masks[i].astype(np.uint8), self.size, interpolation=cv2.INTER_AREA)
             edge = cv2.morphologyEx(m, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
@@ -90,7 +90,7 @@ class Outlines:
                 occ = cv2.dilate(cv2.resize(occ.astype(np.uint8), self.size, interpolation=cv2.INTER_NEAREST),
                                  np.ones((5, 5), np.uint8)) > 0
                 edge &= ~occ
-                self.hidden[i] = occ
+                hidden[i] = occ
             if edge.sum() >= 10:
                 maps.append(np.minimum(cv2.distanceTransform((~edge).astype(np.uint8), cv2.DIST_L2, 3), TRUNC_PX))
                 kept.append(i)
@@ -98,8 +98,8 @@ class Outlines:
         self.at = {i: n for n, i in enumerate(kept)}
         self.dt = np.stack(maps) if maps else np.zeros((0, self.size[1], self.size[0]), np.float32)
         self.w2c = views.w2c[kept] if kept else np.zeros((0, 4, 4))
-        self.occluded = (np.stack([self.hidden.get(i, np.zeros(self.dt.shape[1:], bool)) for i in kept])
-                         if self.hidden and kept else None)
+        self.occluded = (np.stack([hidden.get(i, np.zeros(self.dt.shape[1:], bool)) for i in kept])
+                         if hidden and kept else None)  # (F, h, w) or None: no occluder in any frame kept
 
     def distances(self, pts: np.ndarray) -> np.ndarray:
         """(F,) mean outline distance of the points' (P, 3) projections in each frame; NaN where fewer than half
@@ -135,9 +135,8 @@ class Outlines:
         if inside.sum() < 10:
             return None
         s = samples[inside].astype(int)
-        hidden = self.hidden.get(i)
-        if hidden is not None:  # samples behind an occluder say nothing of the part's outline
-            s = s[~hidden[s[:, 1], s[:, 0]]]
+        if self.occluded is not None:  # samples behind an occluder say nothing of the part's outline
+            s = s[~self.occluded[n][s[:, 1], s[:, 0]]]
             if len(s) < 10:
                 return None
         return float(self.dt[n][s[:, 1], s[:, 0]].mean())
@@ -238,15 +237,19 @@ def smooth_path(curves: np.ndarray, angles: np.ndarray, still: np.ndarray | None
     turn costs `STILL` times more. Why the labels' stillness: a leaf and its mirror image about the plane through its
     axis and the camera cast nearly one silhouette, and the mirror turns as the camera moves; where the part rests,
     only the true leaf stays put."""
-    return _viterbi(curves, angles, np.zeros(len(curves), bool) if still is None else still)[0]
+    return _viterbi(curves, SMOOTH * _turns(angles), np.zeros(len(curves), bool) if still is None else still)[0]
 
 
-def _viterbi(curves: np.ndarray, angles: np.ndarray, still: np.ndarray) -> tuple[np.ndarray, float]:
-    """`smooth_path`'s grid positions and their total score."""
-    step = np.degrees(angles[1] - angles[0])
+def _turns(angles: np.ndarray) -> np.ndarray:
+    """(A, A) degrees between the grid's angles, the short way round."""
     n = len(angles)
     diff = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :])
-    jump = SMOOTH * step * np.minimum(diff, n - diff)  # (A, A)
+    return np.degrees(angles[1] - angles[0]) * np.minimum(diff, n - diff)
+
+
+def _viterbi(curves: np.ndarray, jump: np.ndarray, still: np.ndarray) -> tuple[np.ndarray, float]:
+    """`smooth_path`'s grid positions and their total score; `jump` (A, A): what a turn between neighbours costs."""
+    n = curves.shape[1]
     score = curves[0].copy()
     back = np.zeros(curves.shape, int)
     for f in range(1, len(curves)):
@@ -266,20 +269,18 @@ def anchored_path(curves: np.ndarray, angles: np.ndarray, still: np.ndarray, end
     as the first end's, the best total kept, then the next end's with it. Why: the mirror image turns with the
     camera, so it cannot sit at one angle in frames at one end filmed from different places, however far apart in
     time (a door closed at the start, in the middle and at the end)."""
-    step = np.degrees(angles[1] - angles[0])
-    n = len(angles)
-    diff = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :])
-    away = STILL * SMOOTH * step * np.minimum(diff, n - diff)  # (A, A): from the shared angle (rows)
+    jump = SMOOTH * _turns(angles)
+    away = STILL * jump  # (A, A): from the shared angle (rows)
     held = curves.copy()
-    path = smooth_path(curves, angles, still)
+    path = _viterbi(curves, jump, still)[0]
     for end in ends:
         if end.sum() < 2:
             continue
         best: tuple[float, int, np.ndarray] = (-np.inf, 0, path)
-        for c in range(n):
+        for c in range(len(angles)):
             trial = held.copy()
             trial[end] -= away[c]
-            p, score = _viterbi(trial, angles, still)
+            p, score = _viterbi(trial, jump, still)
             if score > best[0]:
                 best = (score, c, p)
         held[end] -= away[best[1]]

@@ -4,9 +4,15 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
+
+from interreal.conventions import fid_of_index, opencv_to_opengl
+from interreal.synth.camera import look_at
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
@@ -113,3 +119,43 @@ def browser():
         b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
         yield b
         b.close()
+
+
+def arc_camera(az_deg: float, radius: float, elevation: float, aim=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Camera-to-world (4, 4), OpenCV axes: on a circle `radius` around `aim`'s axis (z up), `elevation` rad above
+    it, looking at `aim` (the motion routes' arcs of views)."""
+    az = np.radians(az_deg)
+    centre = radius * np.array([np.sin(az) * np.cos(elevation), -np.cos(az) * np.cos(elevation), np.sin(elevation)])
+    c2w = np.eye(4)
+    c2w[:3, :3], c2w[:3, 3] = look_at(centre, np.asarray(aim, float)), centre
+    return c2w
+
+
+def moved_front(front: np.ndarray, kind: str, s: float, slide: float, turn_deg: float) -> np.ndarray:
+    """A flat front (4, 3), z up, facing -y, at state s: 'slide' -> the prism it sweeps pulled out `slide` units
+    along -y (8, 3); a hinge -> turned `turn_deg` * s about its first edge (z)."""
+    if kind == "slide":
+        return np.concatenate([front, front + [0.0, -slide * s, 0.0]])
+    rot = Rotation.from_rotvec([0.0, 0.0, -np.radians(turn_deg) * s]).as_matrix()
+    return (front - front[0]) @ rot.T + front[0]
+
+
+def silhouette(pts: np.ndarray, c2w: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(mask (H, W) uint8, the points' pixels (N, 2)): the convex hull of `pts` (N, 3) seen by a pinhole camera
+    (`size` = (W, H))."""
+    w2c = np.linalg.inv(c2w)
+    p = (K @ (w2c[:3, :3] @ pts.T + w2c[:3, 3:])).T
+    uv = p[:, :2] / p[:, 2:]
+    m = np.zeros(size[::-1], np.uint8)
+    cv2.fillConvexPoly(m, cv2.convexHull(np.round(uv * 16).astype(np.int32)), 1, shift=4)
+    return m, uv
+
+
+def views_dataset(c2ws: list[np.ndarray], masks: list[np.ndarray], K: np.ndarray, dist: np.ndarray | None = None,
+                  root: Path = Path("no-such-dataset")):
+    """A duck-typed dataset of one object (`masks` (H, W) bool each) under cameras `c2ws` (OpenCV axes): what the
+    pose-free motion routes read (frames' c2w / index / fid, load_mask, intrinsics, root for the transient layer)."""
+    frames = [SimpleNamespace(c2w=opencv_to_opengl(c), index=i, fid=fid_of_index(i)) for i, c in enumerate(c2ws)]
+    stacked = [m[..., None] > 0 for m in masks]
+    return SimpleNamespace(frames=frames, load_mask=lambda f: stacked[f.index], root=root,
+                           intrinsics=SimpleNamespace(K=lambda: K, dist=lambda: np.zeros(5) if dist is None else dist))

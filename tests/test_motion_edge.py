@@ -4,18 +4,16 @@ that stays put; a drawer or a part that never moves gets no hinge from it."""
 from __future__ import annotations
 
 from pathlib import Path
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
+from conftest import arc_camera, moved_front, silhouette, views_dataset
 
-from interreal.conventions import opencv_to_opengl
+from interreal.conventions import fid_of_index
 from interreal.dataset import known_states
 from interreal.motions.edge import anchored_path, measure_edge, segments, smooth_path
 from interreal.motions.silhouette import front_corners
-from interreal.synth.camera import look_at
 from interreal.transients import clear_transients, write_transient
 
 W, H = 480, 360
@@ -42,33 +40,20 @@ def capture(kind: str, n: int = N, moves: bool = True, root: Path = Path("no-suc
     `arm`: while the part moves, an arm reaches up from the image's bottom to its far edge, cut from its masks and
     written to the transient layer under `root`, as the masks stage does."""
     states = truth_states(n) if moves else np.zeros(n)
-    frames, masks = [], []
+    c2ws, masks = [], []
     for i, s in enumerate(states):
-        az = np.radians(-25 + 50 * i / (n - 1))
-        centre = 1.3 * np.array([np.sin(az) * np.cos(0.15), -np.cos(az) * np.cos(0.15), np.sin(0.15)])
-        c2w = np.eye(4)
-        c2w[:3, :3], c2w[:3, 3] = look_at(centre, np.zeros(3)), centre
-        if kind == "slide":
-            pts = np.concatenate([TALL, TALL + [0.0, -0.2 * s, 0.0]])
-        else:
-            rot = Rotation.from_rotvec([0.0, 0.0, -np.radians(80) * s]).as_matrix()
-            pts = (TALL - TALL[0]) @ rot.T + TALL[0]
-        w2c = np.linalg.inv(c2w)
-        p = (K @ (w2c[:3, :3] @ pts.T + w2c[:3, 3:])).T
-        m = np.zeros((H, W), np.uint8)
-        cv2.fillConvexPoly(m, cv2.convexHull(np.round(p[:, :2] / p[:, 2:] * 16).astype(np.int32)), 1, shift=4)
-        fid = f"frame_{i:05d}"
+        c2ws.append(arc_camera(-25 + 50 * i / (n - 1), 1.3, 0.15))
+        m, uv = silhouette(moved_front(TALL, kind, s, 0.2, 80.0), c2ws[-1], K, (W, H))
         if arm and 8 <= i < 46:
-            grip = p[1, :2] / p[1, 2] * 0.5 + p[2, :2] / p[2, 2] * 0.5  # the middle of the far edge
+            grip = 0.5 * (uv[1] + uv[2])  # the middle of the far edge
             band = np.zeros((H, W), np.uint8)
             cv2.fillConvexPoly(band, np.round([[grip[0] - 30, grip[1]], [grip[0] + 30, grip[1]], [grip[0] + 60, H],
                                                [grip[0] - 10, H]]).astype(np.int32), 1)
             m[band > 0] = 0
-            write_transient(root, fid, band > 0)
-        frames.append(SimpleNamespace(c2w=opencv_to_opengl(c2w), index=i, fid=fid))
-        masks.append(m[..., None] > 0)
-    ds = SimpleNamespace(frames=frames, load_mask=lambda f: masks[f.index], root=root,
-                         intrinsics=SimpleNamespace(K=lambda: K, dist=lambda: np.zeros(5)))
+            write_transient(root, fid_of_index(i), band > 0)
+        masks.append(m)
+    ds = views_dataset(c2ws, masks, K, root=root)
+    masks = [m[..., None] > 0 for m in masks]
     labelled = np.zeros(n, bool)
     labelled[[0, 6, 11, 22, 27, 31, 42, 49]] = True
     st, kn = known_states(np.arange(n, dtype=float), np.where(labelled, states, 0)[:, None], labelled[:, None])

@@ -2,17 +2,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-from types import SimpleNamespace
-
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
+from conftest import arc_camera, moved_front, silhouette, views_dataset
 
-from interreal.conventions import opencv_to_opengl
 from interreal.dataset import known_states
 from interreal.motions.silhouette import front_corners, measure_silhouettes
-from interreal.synth.camera import look_at
 
 W, H = 640, 480
 K = np.array([[600.0, 0, W / 2], [0, 600.0, H / 2], [0, 0, 1]])
@@ -35,27 +30,14 @@ def capture(kind: str, sweep_deg: float = 60.0, n: int = 50, dist: np.ndarray | 
     prism its front sweeps, 0.15 units at state 1) or a door (its front turned up to 70 deg about its left edge);
     the cameras look at `aim` (the part off the image's centre) through a lens with `dist`."""
     states = truth_states(n)
-    frames, masks = [], []
+    c2ws, masks = [], []
     for i, s in enumerate(states):
-        az = np.radians(-sweep_deg / 2 + sweep_deg * i / (n - 1))
-        centre = 1.5 * np.array([np.sin(az) * np.cos(0.3), -np.cos(az) * np.cos(0.3), np.sin(0.3)])
-        c2w = np.eye(4)
-        c2w[:3, :3], c2w[:3, 3] = look_at(centre, np.asarray(aim)), centre
-        if kind == "slide":
-            pts = np.concatenate([FRONT, FRONT + [0.0, -0.15 * s, 0.0]])
-        else:
-            rot = Rotation.from_rotvec([0.0, 0.0, -np.radians(70) * s]).as_matrix()
-            pts = (FRONT - FRONT[0]) @ rot.T + FRONT[0]
-        w2c = np.linalg.inv(c2w)
-        p = (K @ (w2c[:3, :3] @ pts.T + w2c[:3, 3:])).T
-        m = np.zeros((H, W), np.uint8)
-        cv2.fillConvexPoly(m, cv2.convexHull(np.round(p[:, :2] / p[:, 2:] * 16).astype(np.int32)), 1, shift=4)
+        c2ws.append(arc_camera(-sweep_deg / 2 + sweep_deg * i / (n - 1), 1.5, 0.3, aim))
+        m, _ = silhouette(moved_front(FRONT, kind, s, 0.15, 70.0), c2ws[-1], K, (W, H))
         if dist is not None:  # what a lens with this distortion records: each pixel looks up its pinhole position
             m = cv2.remap(m, *lens_map(dist), cv2.INTER_NEAREST)
-        frames.append(SimpleNamespace(c2w=opencv_to_opengl(c2w), index=i))
-        masks.append(m[..., None] > 0)
-    ds = SimpleNamespace(frames=frames, load_mask=lambda f: masks[f.index], root=Path("no-such-dataset"),
-                         intrinsics=SimpleNamespace(K=lambda: K, dist=lambda: np.zeros(5) if dist is None else dist))
+        masks.append(m)
+    ds = views_dataset(c2ws, masks, K, dist)
     labelled = np.zeros(n, bool)
     labelled[[0, 5, 10, 14, 25, 30, 34, 45, 49]] = True
     st, kn = known_states(np.arange(n, dtype=float), np.where(labelled, states, 0)[:, None], labelled[:, None])

@@ -426,12 +426,13 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
 
 
 def measure_edge(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: np.ndarray, keys: list[int],
-                 min_pixels: int = 400, trust_labels: bool = False, confidence: np.ndarray | None = None
-                 ) -> tuple[Articulation | None, dict[str, Any]]:
+                 min_pixels: int = 400, trust_labels: bool = False, confidence: np.ndarray | None = None,
+                 views: Views | None = None) -> tuple[Articulation | None, dict[str, Any]]:
     """Object `obj`'s hinge from its outlines and masks over the dataset `ds` (keys: dataset positions of the
     keyframes; confidence (N,): the masks stage's per-frame confidence, frames under `MIN_CONFIDENCE` left out but
-    the keyframes); (None, figures with `edge_reason`) when the route cannot measure it."""
-    views = views_of(ds, obj)
+    the keyframes; `views`: `views_of(ds, obj)` when the caller has it); (None, figures with `edge_reason`) when the
+    route cannot measure it."""
+    views = views_of(ds, obj) if views is None else views
     n = len(views.masks)
     trusted = np.ones(n, bool) if confidence is None else np.asarray(confidence) >= MIN_CONFIDENCE
     trusted[[k for k in keys if k < n]] = True

@@ -372,10 +372,12 @@ def views_of(ds, obj: int) -> Views:
 
 
 def measure_silhouettes(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: np.ndarray,
-                        min_pixels: int = 400, trust_labels: bool = False) -> tuple[Articulation | None, dict[str, Any]]:
+                        min_pixels: int = 400, trust_labels: bool = False, views: Views | None = None
+                        ) -> tuple[Articulation | None, dict[str, Any]]:
     """Object `obj`'s motion from its masks over the dataset `ds` and its known cameras; states, known, labelled
-    (N,) over the dataset's frames. (None, figures with `silhouette_reason`) when the route cannot measure it."""
-    views = views_of(ds, obj)
+    (N,) over the dataset's frames; `views`: `views_of(ds, obj)` when the caller has it. (None, figures with
+    `silhouette_reason`) when the route cannot measure it."""
+    views = views_of(ds, obj) if views is None else views
     frames = [i for i, m in enumerate(views.masks) if int(m.sum()) >= min_pixels]
     fit, fig = silhouette_motion(views, states, known, frames)
     fig["route"] = "silhouette"

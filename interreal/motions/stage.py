@@ -47,7 +47,7 @@ from ..transients import excluded
 from .fit import FLAG_TOL, PartViews, fit_motion, part_point
 from .pnp import pnp_views, reference_frames
 from .edge import measure_edge
-from .silhouette import measure_silhouettes
+from .silhouette import Views, measure_silhouettes, views_of
 
 # MotionConfig.route: the route tried first; the others follow, in this order, while no motion is accepted
 ROUTES = ("sfm", "pnp", "silhouette", "edge")
@@ -242,6 +242,7 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
     order = list(routes) if routes else [cfg.route] + [r for r in ROUTES if r != cfg.route]
     tried: dict[str, dict[str, Any]] = {}
     attempts = 0
+    views: Views | None = None  # the part's masks, cameras and occluders, read once for the pose-free routes
     for route in order:
         if best[0] is not None and best[1]["accepted"]:
             break
@@ -253,13 +254,16 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
             if obj is None:
                 continue
             step("silhouettes")
-            motion, fig = measure_silhouettes(ds, obj, states, known, labelled, cfg.min_pixels, cfg.trust_labels)
+            views = views_of(ds, obj) if views is None else views
+            motion, fig = measure_silhouettes(ds, obj, states, known, labelled, cfg.min_pixels, cfg.trust_labels,
+                                              views)
         elif route == "edge":
             if obj is None:
                 continue
             step("static edge")
+            views = views_of(ds, obj) if views is None else views
             motion, fig = measure_edge(ds, obj, states, known, labelled, keyframe_positions(ds), cfg.min_pixels,
-                                       cfg.trust_labels, mask_confidence(ds, obj))
+                                       cfg.trust_labels, mask_confidence(ds, obj), views)
         else:
             motion, fig = _measure_part_sfm(pc, ds, names, part, states, known, labelled, cfg, step, start)
         fig.setdefault("route", route)

@@ -25,4 +25,7 @@ TRANSIENTS_DIR = "transients"  # <fid>.png: people / hands (255), left out of Sf
 PREVIEWS_DIR = "previews"  # the masks stage's contact sheets and videos
 KEYFRAMES_DIR = "keyframes"  # where `interreal annotate` stores keyframe masks (the `--keyframes DIR` format)
 LOCK_FILE = ".edit.lock"  # held while a label tool edits the dataset
+CACHE_DIR = "cache"  # what a stage keeps to make its next run faster, never read as a result
+MASKS_CACHE_DIR = f"{CACHE_DIR}/masks"  # the masks stage's stretches of frames (`interreal.masks.reuse`)
+TRANSIENTS_CACHE_FILE = f"{CACHE_DIR}/transients_auto.npz"  # `--transients auto`'s layer (`transients.auto`)
 MOTIONS_DIR = "motions"  # <object>/: the motion stage's part reconstructions (database, masks, model)

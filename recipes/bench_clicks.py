@@ -156,9 +156,10 @@ def video_loop(seq: str, ds: Path, gts: list[np.ndarray], kdir: Path, propagate:
                frame_j: Callable[..., np.ndarray], rounds: int, budget: int) -> dict:
     """Clicks to a whole video: the user clicks the frame the stage suggests (the first frame first; the stage's
     propagated mask of that frame is the prior) until it is at IoU 0.9 (or MAX_CLICKS), the keyframe is saved,
-    propagation re-runs (`interreal masks`, the whole command: the time the user waits), and so on, until every
-    frame is at J >= 0.9, or `rounds` keyframes or `budget` clicks are spent. Reports, per level 0.8 / 0.9, the
-    clicks per 100 frames when every frame first reached it (None: not within the budget)."""
+    propagation re-runs (`interreal masks`, the whole command, which re-makes the gaps the new keyframe touched: the
+    time the user waits), and so on, until every frame is at J >= 0.9, or `rounds` keyframes or `budget` clicks are
+    spent. Reports, per level 0.8 / 0.9, the clicks per 100 frames when every frame first reached it (None: not
+    within the budget)."""
     n = len(gts)
     keys: dict[int, np.ndarray] = {}
     target, prior, total, wait = 0, None, 0, 0.0
@@ -172,7 +173,7 @@ def video_loop(seq: str, ds: Path, gts: list[np.ndarray], kdir: Path, propagate:
         for k, m in keys.items():
             atomic.write_image(kdir / f"{fid_of_index(k)}.png", m.astype(np.uint8))
         atomic.write_yaml(kdir / "mapping.yaml", {0: seq})
-        seconds = propagate(ds, kdir, [], 3)
+        seconds = propagate(ds, kdir, [], 3, reuse=bool(history))  # a new round re-makes what it changed
         wait += seconds
         j = frame_j(ds, gts, 1)[:, 0]
         history.append({"keyframe": target, "clicks": len(r["ious"]), "clicks_total": total,

@@ -125,8 +125,12 @@ def frame_j(ds: Path, gts: list[np.ndarray], n_obj: int) -> np.ndarray:
     return out
 
 
-def run_command(ds: Path, kdir: Path, extra: list[str], suggest: int) -> float:
-    """The whole `interreal masks` command in a fresh process; returns its wall time (start-up to exit)."""
+def run_command(ds: Path, kdir: Path, extra: list[str], suggest: int, reuse: bool = False) -> float:
+    """The whole `interreal masks` command in a fresh process; returns its wall time (start-up to exit). `reuse`:
+    keep what the last run left for the next (DS/cache: the stretches no keyframe change touched, the transient
+    layer), as a user's next round does; otherwise every run starts from nothing."""
+    if not reuse:
+        shutil.rmtree(ds / "cache", ignore_errors=True)
     shutil.rmtree(ds / "masks", ignore_errors=True)
     shutil.rmtree(ds / "reports", ignore_errors=True)
     (ds / "mapping.yaml").unlink(missing_ok=True)

@@ -569,7 +569,8 @@ def test_a_long_gap_makes_only_its_forward_steps_ahead(monkeypatch):
 
 
 def test_filter_objects_and_argmax_match_the_plain_versions():
-    from interreal.masks.track import _argmax_channels, _argmax_labels, filter_objects
+    from interreal.masks.soft import argmax_channels as _argmax_channels, argmax_labels as _argmax_labels
+    from interreal.masks.track import filter_objects
 
     rng = np.random.default_rng(0)
     for k in (1, 3):
@@ -678,13 +679,14 @@ def test_masks_flags_come_from_the_config_fields():
     add_arguments(p)
     flags = {s for a in p._actions for s in a.option_strings} - {"-h", "--help"}
     assert flags == {"--keyframes", "--quiet", "--work-size", "--flow", "--preset", "--appearance", "--rigid", "--cut",
-                     "--no-fusion", "--no-refine", "--suggest", "--preview", "--transients"}
+                     "--no-fusion", "--no-refine", "--suggest", "--preview", "--transients", "--no-reuse"}
     opts = masks_options(p.parse_args(["ds", "--keyframes", "kf"]))
     defaults = dataclasses.asdict(MasksConfig())
     assert opts == {k: defaults[k] for k in opts} and len(opts) == len(flags) - 2
     opts = masks_options(p.parse_args(["ds", "--keyframes", "kf", "--work-size", "0", "--no-fusion", "--no-refine",
-                                       "--appearance", "0.5", "--flow", "farneback"]))
+                                       "--appearance", "0.5", "--flow", "farneback", "--no-reuse"]))
     assert opts["work_long_side"] == 0 and opts["fusion"] is False and opts["refine"] is False
+    assert opts["reuse"] is False
     cfg = make_config(**opts)
     assert cfg.work_long_side == 0 and not cfg.fusion and cfg.refine_radius == 0 and cfg.out_radius == 0
     assert cfg.appearance.weight == 0.5 and cfg.flow.method == "farneback"

@@ -36,6 +36,8 @@ class MasksConfig:
     transients: str = option("auto", "the transient layer (hands, arms) without painting: auto = from the hand model "
                                      "(mediapipe), grown to the arm; off = only the painted ignore class",
                              choices=TRANSIENT_MODES)
+    reuse: bool = option(True, "make every frame again (by default the stretches between keyframes that no keyframe "
+                               "change touched are taken from the last run)", flag="--no-reuse")
     sfm_dilate: int | None = None  # px the SfM masks grow by (None = 0.6 % of the image diagonal, at least 2)
 
     def __post_init__(self) -> None:

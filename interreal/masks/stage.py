@@ -19,7 +19,7 @@ from ..conventions import (IMAGES_DIR, FRAME_PREFIX, frame_id, frame_index, inde
                            onehot_to_index)
 from ..dataset import list_images, read_image_rgb, read_mapping, write_mapping, write_mask
 from ..errors import InputError
-from ..layout import PREVIEWS_DIR, SFM_MASKS_DIR
+from ..layout import MASKS_CACHE_DIR, PREVIEWS_DIR, SFM_MASKS_DIR, TRANSIENTS_CACHE_FILE
 from ..report import StageReport, files_fingerprint, finished_with, fingerprint, tree_fingerprint
 from ..options import config_from
 from .config import PREVIEW_KINDS, MasksConfig
@@ -30,11 +30,12 @@ from ..video import VideoWriter
 from .preview import contact_sheet, second_line, thumb
 from .redetect import Event
 from .soft import disk
-from .track import Propagator, TrackConfig
+from .reuse import Reuse
+from .track import FrameResult, Propagator, TrackConfig
 from .verdict import MAX_REACH, Cues, RunHealth, assess_run, fine_shares, key_refs
 from ..transients import (IGNORE, clear_transients, read_transient, split_labels, track_labels, transient_file,
                           write_transient)
-from ..transients.auto import AutoLayer, propose
+from ..transients.auto import AutoLayer, layer_key, load_layer, propose, save_layer
 from ..transients.hands import model_problem, shares
 
 
@@ -91,9 +92,9 @@ def propagate(ds: str | Path, keyframes_dir: str | Path, *, progress: bool = Tru
         rep.steps["keyframes"] = {"wall_s": round(job.keyframes_s, 4)}
         if not job.ds_mapping:
             write_mapping(ds, dict(enumerate(job.kf.names)))
-        layer = _auto_layer(rep, job, auto, no_model, progress)
+        layer = _auto_layer(rep, job, auto, no_model, progress, opt.reuse)
         dil = opt.sfm_dilate if opt.sfm_dilate is not None else max(2, round(0.006 * float(np.hypot(*job.size))))
-        out = _run_chains(rep, job, cfg, layer, opt.preview, dil, progress)
+        out = _run_chains(rep, job, cfg, layer, opt.preview, dil, progress, opt.reuse)
         hl, health = assess_run(ds, job.fids, job.anchors, job.n_obj, out.cues, out.ref, out.prop,
                                 out.grey is not None, opt.suggest)
         with rep.step("left_view"):
@@ -175,12 +176,20 @@ class _Job:
         return img
 
 
-def _auto_layer(rep: StageReport, job: _Job, auto: bool, no_model: str | None, progress: bool) -> AutoLayer | None:
-    """`--transients auto`'s layer, or the one line on why there is none."""
+def _auto_layer(rep: StageReport, job: _Job, auto: bool, no_model: str | None, progress: bool,
+                reuse: bool = True) -> AutoLayer | None:
+    """`--transients auto`'s layer (the last run's when the frames are the same: it depends on no keyframe), or
+    the one line on why there is none."""
     if auto:
+        key, cache = layer_key(job.images), job.ds / TRANSIENTS_CACHE_FILE
+        layer = load_layer(cache, key) if reuse else None
+        if layer is not None:
+            rep.steps["transients_auto"] = {**layer.seconds, "reused": True}
+            return layer
         with rep.step("transients_auto") as st:
             layer = propose(job.load, len(job.fids), job.size, progress=progress)
             st.update(layer.seconds)
+        save_layer(cache, key, layer)
         return layer
     if no_model:
         rep.warn(f"no automatic transient layer: {no_model}; or paint the hand / person as `ignore` on the "
@@ -209,9 +218,10 @@ class _Chains:
 
 
 def _run_chains(rep: StageReport, job: _Job, cfg: TrackConfig, layer: AutoLayer | None, preview: str, dil: int,
-                progress: bool) -> _Chains:
-    """Every frame's labels from the chains, written (masks, transients, SfM masks) on a thread of their own while
-    the chains run, with the cues health needs and the preview tiles."""
+                progress: bool, reuse: bool = True) -> _Chains:
+    """Every frame's labels from the chains (or, for the stretches no keyframe change touched, from the last run:
+    `reuse`), written (masks, transients, SfM masks) on a thread of their own while the chains run, with the cues
+    health needs and the preview tiles."""
     n_obj, fids = job.n_obj, job.fids
     prop = Propagator(job.load, len(fids), job.size, job.n_track, cfg)
     out = _Chains(prop, Cues(len(fids), job.n_track), np.zeros(len(fids)),
@@ -219,6 +229,7 @@ def _run_chains(rep: StageReport, job: _Job, cfg: TrackConfig, layer: AutoLayer 
                   {p: np.array([(m == k + 1).mean() for k in range(job.n_track)]) for p, m in job.anchors.items()},
                   H.fine_radius(job.size[0], prop.wsize[0]))
     clear_transients(job.ds)  # this run's ignore class (or none) replaces any earlier transient layer
+    kept = Reuse(job.ds / MASKS_CACHE_DIR, job.images, job.anchors, (asdict(cfg), job.n_track)) if reuse else None
     sheet_pos = set(np.linspace(0, len(fids) - 1, min(len(fids), 24)).round().astype(int).tolist())
     vid_w = min(480, job.size[0])
     t_write = 0.0
@@ -232,8 +243,8 @@ def _run_chains(rep: StageReport, job: _Job, cfg: TrackConfig, layer: AutoLayer 
             refs = writer.submit(key_refs, job.anchors, job.load, prop.wsize, job.n_track)
             fine = writer.submit(fine_shares, job.anchors, n_obj, out.fine_r)
             pending: deque[Future] = deque()
-            for res in prop.run(job.anchors):
-                tw, cw = time.perf_counter(), time.process_time()
+
+            def emit(res: FrameResult, row: dict[str, np.ndarray] | None) -> None:
                 # a keyframe that paints the ignore class says what is transient there: no proposal over it
                 labels = with_auto(res.labels, None if res.pos in job.painted else layer, res.pos, n_obj)
                 out.transient_share[res.pos] = (labels == n_obj + 1).mean() if out.grey is not None else 0.0
@@ -243,8 +254,13 @@ def _run_chains(rep: StageReport, job: _Job, cfg: TrackConfig, layer: AutoLayer 
                     pending.popleft().result()  # a failed write stops the stage here, not at the end
                 # the cues and the preview tiles go to the writer too: the chains' thread is the one the
                 # others wait for (first frame only: 10 % of its time was these)
-                work = None if res.keyframe else prop.cache.work(res.pos)
-                pending.append(writer.submit(out.cues.add, res, work, refs))
+                work = None if res.keyframe or row is not None else prop.cache.work(res.pos)
+                if row is not None:
+                    out.cues.put(res.pos, row)
+                else:
+                    pending.append(writer.submit(out.cues.add, res, work, refs))
+                if kept is not None and row is None and not res.keyframe:
+                    pending.append(writer.submit(kept.save_frame, res.pos, res.labels))
                 if preview != "none":
                     full = prop.cache.peek(res.pos)
                     cap = f"{fids[res.pos]}{' key' if res.keyframe else ''}"
@@ -256,14 +272,22 @@ def _run_chains(rep: StageReport, job: _Job, cfg: TrackConfig, layer: AutoLayer 
                         src = work if work is not None and work.shape[1] == vid_w else full
                         pending.append(writer.submit(_tile, out.video, res.pos, src, job.load, labels, vid_w, cap,
                                                      out.grey))
+                bar.update(1)
+
+            for res in prop.run(job.anchors, kept.found if kept is not None else ()):
+                tw, cw = time.perf_counter(), time.process_time()
+                emit(res, None)
                 t_write += time.perf_counter() - tw
                 c_write += time.process_time() - cw
-                bar.update(1)
+            for pos, labels, row in (kept.replay() if kept is not None else ()):
+                emit(FrameResult(pos, labels), row)
             bar.close()
             tw = time.perf_counter()
             for done in pending:
                 done.result()
             out.fine, out.fine_key = fine.result()
+            if kept is not None:
+                kept.finish(out.cues, prop)
             t_write += time.perf_counter() - tw
         compute = time.perf_counter() - t_start - t_write
         cpu = time.process_time() - c_start - c_write
@@ -271,7 +295,8 @@ def _run_chains(rep: StageReport, job: _Job, cfg: TrackConfig, layer: AutoLayer 
         # i.e. what one dedicated core would do, a contention-free floor for the 2-core figure
         info.update(frames=len(fids), flow_pairs=prop.flow_pairs, compute_s=round(compute, 3),
                     write_s=round(t_write, 3), fps=round(len(fids) / max(compute, 1e-9), 2),
-                    cpu_s=round(cpu, 3), cpu_fps=round(len(fids) / max(cpu, 1e-9), 2))
+                    cpu_s=round(cpu, 3), cpu_fps=round(len(fids) / max(cpu, 1e-9), 2),
+                    reused_frames=kept.reused_frames if kept is not None else 0)
         out.info = dict(info)
     return out
 

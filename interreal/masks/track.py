@@ -27,7 +27,7 @@ from __future__ import annotations
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Iterator
+from typing import Callable, Collection, Iterable, Iterator
 
 import cv2
 import numpy as np
@@ -37,11 +37,10 @@ from .appearance import AppearanceConfig, ColourModel, LocalColour, heldout_info
 from .flow import FlowConfig, FlowEngine, Step, make_step, sampling_grid
 from .evidence import StepEvidence
 from .redetect import Event, RedetectConfig, Redetector
+from .reuse import Segment, chain_segments
 from .soft import anchor_soft, argmax_channels, argmax_labels, channels_to_labels, chsum, filter_objects
 from .workframes import WORK_LONG_SIDE, FrameCache, work_size
 
-# the names tests and older callers import from here
-_argmax_labels, _argmax_channels, _channels_to_labels = argmax_labels, argmax_channels, channels_to_labels
 __all__ = ["TrackConfig", "FrameResult", "Propagator", "median_motion", "FrameCache", "WORK_LONG_SIDE",
            "work_size", "anchor_soft", "filter_objects", "chsum"]
 
@@ -333,28 +332,30 @@ class Propagator(StepEvidence):
         return argmax_labels(soft)
 
     # -- the whole sequence --------------------------------------------------------------------------------
-    def run(self, anchors: dict[int, np.ndarray]) -> Iterator[FrameResult]:
-        """Yield a FrameResult for every frame (keyframes last), in chain order."""
+    def run(self, anchors: dict[int, np.ndarray], skip: Collection[Segment] = ()) -> Iterator[FrameResult]:
+        """A FrameResult for every frame (keyframes last) in chain order, but those `skip`'s stretches hold."""
         try:
-            yield from self._run(anchors)
+            yield from self._run(anchors, set(skip))
         finally:
             self.close()
 
-    def _run(self, anchors: dict[int, np.ndarray]) -> Iterator[FrameResult]:
+    def _run(self, anchors: dict[int, np.ndarray], skip: set[Segment]) -> Iterator[FrameResult]:
         keys = sorted(anchors)
+        todo = [s for s in chain_segments(keys, self.n) if s not in skip]
+        gaps = [(s.a, s.b) for s in todo if s.kind == "gap"]
         # every flow pair in the order the chains below ask for it: the worker runs ahead across chains and gaps
-        before, between = range(keys[0] - 1, -1, -1), [t for a, b in zip(keys[:-1], keys[1:]) for t in range(a, b)]
-        after = range(keys[-1], self.n - 1)
+        before = range(keys[0] - 1, -1, -1) if any(s.kind == "before" for s in todo) else range(0)
+        between = [t for a, b in gaps for t in range(a, b)]
+        after = range(keys[-1], self.n - 1) if any(s.kind == "after" for s in todo) else range(0)
         # a gap's backward Steps wait for its backward chain, made while the forward chain passes (1.5 MB each at
         # 480 px): on a long gap only the forward ones are made ahead, as the stored chain turns float16 there
-        long_gap = {t for a, b in zip(keys[:-1], keys[1:]) if b - a > LONG_GAP for t in range(a, b)}
+        long_gap = {t for a, b in gaps if b - a > LONG_GAP for t in range(a, b)}
         dirs = {t: ((t + 1, t),) for t in before} | \
             {t: ((t, t + 1),) if t in long_gap else ((t, t + 1), (t + 1, t)) for t in between} | \
             {t: ((t, t + 1),) for t in after}
         self.plan([*before, *between, *after], dirs)
         soft0 = {k: anchor_soft(anchors[k], self.k, self.wsize) for k in keys}
         arrivals: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {k: [] for k in keys}
-        gaps = list(zip(keys[:-1], keys[1:]))
         # The forward chain of the next gap runs on its own thread while this gap's backward chain and fusion run
         # here: with flows on a third thread, both cores stay busy (keyframe every 10 frames: 1.5x faster).
         chains = ThreadPoolExecutor(1, thread_name_prefix="chain") if self._pool is not None and gaps else None
@@ -370,7 +371,7 @@ class Propagator(StepEvidence):
         try:
             ahead = launch(0) if gaps else None
             # before the first keyframe: backward chain only
-            yield from self._one_sided(keys[0], range(keys[0] - 1, -1, -1), soft0[keys[0]], arrivals, nxt=True)
+            yield from self._one_sided(keys[0], before, soft0[keys[0]], arrivals, nxt=True)
             for g, (a, b) in enumerate(gaps):
                 fwd, model_a = ahead.result()
                 ahead = launch(g + 1) if g + 1 < len(gaps) else None
@@ -378,7 +379,8 @@ class Propagator(StepEvidence):
         finally:
             if chains is not None:
                 chains.shutdown(wait=True, cancel_futures=True)
-        yield from self._one_sided(keys[-1], range(keys[-1] + 1, self.n), soft0[keys[-1]], arrivals, nxt=False)
+        yield from self._one_sided(keys[-1], range(keys[-1] + 1, self.n) if after else after, soft0[keys[-1]],
+                                   arrivals, nxt=False)
         for k in keys:
             yield self._keyframe(k, anchors[k], arrivals[k])
 
@@ -437,9 +439,11 @@ class Propagator(StepEvidence):
         return LocalColour.fit(self.cache.work(k), start[0], start[1])
 
     def _one_sided(self, k: int, order: range, start, arrivals, nxt: bool) -> Iterator[FrameResult]:
+        if not len(order):  # no frame on that side (or an earlier run's: `reuse`)
+            return
         soft, acc, model = self._start(k, start)
         app = self.cfg.appearance
-        if model is not None and app.adaptive and len(order):
+        if model is not None and app.adaptive:
             # no second keyframe will correct this chain: the colour model is its only anchor to the keyframe,
             # weighed by what it proved to tell apart there (never below the configured weight)
             info = heldout_information(self.cache.work(k), start[0], start[1], app)

@@ -46,6 +46,15 @@ class Cues:
         # ... and which sides (left, top, right, bottom) it reaches within `border_band` (`redetect.border_sides`)
         self.sides = np.zeros((n, k, 4), bool)
 
+    def rows(self, frames: list[int]) -> dict[str, np.ndarray]:
+        """Every cue's rows of these frames, by name (`reuse` stores them with the frames' labels)."""
+        return {name: v[frames] for name, v in vars(self).items()}
+
+    def put(self, pos: int, row: dict[str, np.ndarray]) -> None:
+        """One frame's cues as `rows` gave them, in place of `add`."""
+        for name, v in row.items():
+            getattr(self, name)[pos] = v
+
     def add(self, res, work: np.ndarray | None, refs: Future) -> None:
         """One frame's cues; `work`: its work-size image (None for a keyframe); `refs`: `key_refs`. Runs on the
         writer thread."""

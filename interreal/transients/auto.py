@@ -17,15 +17,19 @@ the image edge) is not found: the pose model's person mask fires on too few fram
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
-from .hands import MIDDLE_MCP, WRIST, HandTrack, find_hands, hand_length, hand_scale
+from .. import __version__, atomic
+from ..report import files_fingerprint, fingerprint
+from .hands import MEDIAPIPE_VERSION, MIDDLE_MCP, WRIST, HandTrack, find_hands, hand_length, hand_scale
 
 WORK_LONG_SIDE = 480  # px: GrabCut's resolution (a hand is tens of pixels wide there; full size costs 4x)
 BAND_WIDTH = 0.3  # the forearm band's width, in hand lengths (wrist to middle knuckle): the forearm's spine, not its
@@ -56,6 +60,43 @@ class AutoLayer:
         if m is None:
             return None
         return cv2.resize(m.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+
+
+def layer_key(images: list[Path]) -> str:
+    """What the layer depends on: the frames' files and this code (no keyframe: a new one leaves it as it was)."""
+    return fingerprint("transients-auto", __version__, MEDIAPIPE_VERSION, files_fingerprint(images),
+                       [WORK_LONG_SIDE, BAND_WIDTH, CORE_ERODE, AROUND, CONTEXT, MAX_SHARE, GRABCUT_ITERS, ROUNDS, SETTLED])
+
+
+def save_layer(path: Path, key: str, layer: AutoLayer) -> None:
+    """The layer and its hand track in one file, for the next run over the same frames (`load_layer`)."""
+    pos = sorted(layer.masks)
+    stack = np.stack([layer.masks[p] for p in pos]) if pos else np.zeros((0, layer.work_size[1], layer.work_size[0]))
+    hands = [np.asarray(h, np.float64).reshape(-1, 21, 2) for h in layer.track.hands]
+    meta = {"key": key, "work_size": list(layer.work_size), "leaked": layer.leaked, "seconds": layer.seconds,
+            "how": layer.track.how, "track_seconds": layer.track.seconds}
+    with atomic.atomic_open(path) as fh:
+        np.savez_compressed(fh, meta=np.array(json.dumps(meta)), pos=np.array(pos, np.int64),
+                            masks=np.packbits(stack.astype(bool), axis=-1), counts=np.array([len(h) for h in hands]),
+                            hands=np.concatenate(hands) if hands else np.zeros((0, 21, 2)))
+
+
+def load_layer(path: Path, key: str) -> AutoLayer | None:
+    """The layer `save_layer` kept under this key, else None (no file, another key, an unreadable file)."""
+    try:
+        with np.load(path) as z:
+            meta = json.loads(str(z["meta"]))
+            if meta["key"] != key:
+                return None
+            w, h = meta["work_size"]
+            masks = np.unpackbits(z["masks"], axis=-1, count=w).astype(bool)
+            ends = np.cumsum(z["counts"])
+            hands = np.split(z["hands"], ends[:-1]) if len(ends) else []
+            pos = z["pos"].tolist()
+    except (OSError, ValueError, KeyError):
+        return None
+    track = HandTrack([np.asarray(x, np.float64) for x in hands], meta["how"], meta["track_seconds"])
+    return AutoLayer(dict(zip(pos, masks)), (w, h), track, meta["leaked"], meta["seconds"])
 
 
 def work_size(size: tuple[int, int], long_side: int = WORK_LONG_SIDE) -> tuple[int, int]:

@@ -60,7 +60,7 @@ def test_the_reused_run_is_the_run_from_scratch(rounds):
     assert all(np.array_equal(a, b) for a, b in zip(_masks(ds, 24), _masks(fresh, 24), strict=True))
     differ = [k for k in set(second) | set(scratch) if k not in TIMING and second.get(k) != scratch.get(k)]
     assert not differ, differ
-    assert _steps(fresh)["reused_frames"] == 0 and not (fresh / MASKS_CACHE_DIR).exists()
+    assert _steps(fresh)["reused_frames"] == 0 and not (fresh / "cache").exists()  # --no-reuse keeps nothing
     # the sfm masks and the previews come from the same labels
     for name in ("sfm_masks/frame_00002.png.png", "sfm_masks/frame_00009.png.png"):
         assert (ds / name).read_bytes() == (fresh / name).read_bytes()

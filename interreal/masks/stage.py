@@ -189,7 +189,8 @@ def _auto_layer(rep: StageReport, job: _Job, auto: bool, no_model: str | None, p
         with rep.step("transients_auto") as st:
             layer = propose(job.load, len(job.fids), job.size, progress=progress)
             st.update(layer.seconds)
-        save_layer(cache, key, layer)
+        if reuse:
+            save_layer(cache, key, layer)
         return layer
     if no_model:
         rep.warn(f"no automatic transient layer: {no_model}; or paint the hand / person as `ignore` on the "

@@ -10,7 +10,9 @@ again at the simulator's truth states). A text-only pass scores retrieval among 
 
 Records: data, query, phrasing, object, retrieved, retrieved_ok, score, prob, iou (mean over held-out views where
 the object or the mask is present), iou_oracle (the intended object's own mask), iou_truth_states (rendered at the
-truth states). Goals: retrieval accuracy >= 0.9, grounding mIoU >= 0.85.
+truth states), iou_dataset_masks (against the run's dataset masks rather than the simulator's truth: on a `--run` of
+the demo those are propagated, and wrong where propagation was). Goals: retrieval accuracy >= 0.9, grounding mIoU
+>= 0.85.
 
   python recipes/bench_ground.py --text-only --out bench/         # the query set alone (seconds)
   python recipes/bench_ground.py --quick --out bench/
@@ -105,9 +107,12 @@ def make_run(work: Path, cap: Path, args) -> Path:
     return run
 
 
-def heldout_views(run, cap_states: np.ndarray, count: int, scale: float = 1.0) -> list[dict]:
+def heldout_views(run, capture, count: int, scale: float = 1.0) -> list[dict]:
     """Render `count` held-out views (spread; 0 = all) once at the run's learned states for the frame (what the
-    run reconstructs, as `livescene ground --views` renders) and once at the simulator's truth states."""
+    run reconstructs, as `livescene ground --views` renders) and once at the simulator's truth states. Each view's
+    `truth` is the simulator's instance mask in the run's object order; `dataset` the run's dataset masks (the
+    propagated ones on a demo or `process` run: an estimate, wrong where propagation was)."""
+    import cv2
     from tqdm import tqdm
 
     from interreal.conventions import onehot_to_index
@@ -115,32 +120,40 @@ def heldout_views(run, cap_states: np.ndarray, count: int, scale: float = 1.0) -
     from livescene.render import render_view
 
     views = run.views
+    cap_states = np.asarray(capture.states)
+    lut = np.zeros(256, np.uint8)  # the simulator's instance ids -> the run's object indices + 1
+    for k, name in enumerate(run.names):
+        if name in capture.names:
+            lut[capture.names.index(name) + 1] = k + 1
     held = list(views.held_out) or list(range(0, len(views.times), 8))
     if count and count < len(held):
         held = [held[int(j)] for j in np.linspace(0, len(held) - 1, count).round()]
     out = []
     for i in tqdm(held, desc="render held-out", unit="view"):
         frame = views.dataset.frames[i]
-        _, truth = load_frame(views, i)  # index map at the working size (0 = background)
-        if truth is None:
-            truth = onehot_to_index(views.dataset.load_mask(frame))
+        _, dataset = load_frame(views, i)  # index map at the working size (0 = background)
+        if dataset is None:
+            dataset = onehot_to_index(views.dataset.load_mask(frame))
         intr = views.intrinsics[i]
         if scale != 1.0:
-            import cv2
-
             intr = intr.scaled(max(8, round(intr.w * scale)), max(8, round(intr.h * scale)))
-            truth = cv2.resize(truth, (intr.w, intr.h), interpolation=cv2.INTER_NEAREST_EXACT)
+        size = (intr.w, intr.h)
+        dataset = cv2.resize(dataset, size, interpolation=cv2.INTER_NEAREST_EXACT)
+        truth = lut[cv2.resize(capture.instance(frame.index).astype(np.uint8), size,
+                               interpolation=cv2.INTER_NEAREST_EXACT)]
         learned = render_view(run, views.c2w_gl[i], intr, None, time=float(views.times[i]))
         at_truth = render_view(run, views.c2w_gl[i], intr, cap_states[frame.index])
         out.append({"fid": frame.fid, "probs": learned["probs"], "probs_truth_states": at_truth["probs"],
-                    "truth": truth, "state_err": float(np.abs(learned["states"] - cap_states[frame.index]).mean())})
+                    "truth": truth, "dataset": dataset,
+                    "state_err": float(np.abs(learned["states"] - cap_states[frame.index]).mean())})
     return out
 
 
-def view_iou(views: list[dict], obj: int, expected: int, thr: float, key: str = "probs") -> tuple[float | None, int]:
+def view_iou(views: list[dict], obj: int, expected: int, thr: float, key: str = "probs",
+             truth: str = "truth") -> tuple[float | None, int]:
     from livescene.language.grounding import mask_iou
 
-    ious = [mask_iou(v[key][..., obj] > thr, v["truth"] == expected + 1) for v in views]
+    ious = [mask_iou(v[key][..., obj] > thr, v[truth] == expected + 1) for v in views]
     ious = [x for x in ious if x is not None]
     return (float(np.mean(ious)) if ious else None), len(ious)
 
@@ -157,7 +170,7 @@ def grounding_records(run_dir: Path, cap: Path, thr: float, data: str, count: in
     check_run_has_masks(run)
     names = run.names
     t0 = time.perf_counter()
-    views = heldout_views(run, np.asarray(capture.states), count, scale)
+    views = heldout_views(run, capture, count, scale)
     render_s = time.perf_counter() - t0
     enc = get_encoder()
     records = []
@@ -171,12 +184,14 @@ def grounding_records(run_dir: Path, cap: Path, thr: float, data: str, count: in
             oracle, _ = view_iou(views, names.index(obj), names.index(obj), thr)
             at_truth, _ = (view_iou(views, best.index, names.index(obj), thr, "probs_truth_states") if res.ok
                            else (0.0, 0))
+            on_dataset, _ = view_iou(views, best.index, names.index(obj), thr, truth="dataset") if res.ok else (0.0, 0)
             records.append({"data": data, "query": query, "phrasing": phrasing, "object": obj,
                             "retrieved": best.name if res.ok else None, "retrieved_ok": bool(res.ok and best.name == obj),
                             "score": round(best.score, 4), "prob": round(best.prob, 4),
                             "iou": None if iou is None else round(iou, 4),
                             "iou_oracle": None if oracle is None else round(oracle, 4),
-                            "iou_truth_states": None if at_truth is None else round(at_truth, 4), "views": n,
+                            "iou_truth_states": None if at_truth is None else round(at_truth, 4),
+                            "iou_dataset_masks": None if on_dataset is None else round(on_dataset, 4), "views": n,
                             "retrieval_ms": round(ms, 2)})
     meta = {"heldout_views": len(views), "render_s_per_view": round(render_s / max(len(views), 1) / 2, 3),
             "eval_size": list(views[0]["truth"].shape[::-1]) if views else None,
@@ -335,10 +350,12 @@ def summary(records: list[dict]) -> dict:
         ious = [r["iou"] for r in rs if r["iou"] is not None]
         oracle = [r["iou_oracle"] for r in rs if r["iou_oracle"] is not None]
         at_truth = [r["iou_truth_states"] for r in rs if r["iou_truth_states"] is not None]
+        on_dataset = [r["iou_dataset_masks"] for r in rs if r.get("iou_dataset_masks") is not None]
         out[data] = {"queries": len(rs), "retrieval_accuracy": round(float(np.mean([r["retrieved_ok"] for r in rs])), 4),
                      "miou": round(float(np.mean(ious)), 4) if ious else None,
                      "miou_oracle": round(float(np.mean(oracle)), 4) if oracle else None,
-                     "miou_truth_states": round(float(np.mean(at_truth)), 4) if at_truth else None}
+                     "miou_truth_states": round(float(np.mean(at_truth)), 4) if at_truth else None,
+                     "miou_dataset_masks": round(float(np.mean(on_dataset)), 4) if on_dataset else None}
     return out
 
 
@@ -419,7 +436,8 @@ def main() -> int:
                           "iou_truth_states"],
                 title="grounding per query")
     print_table([{"data": k, **v} for k, v in summ.items()],
-                ["data", "queries", "retrieval_accuracy", "miou", "miou_oracle", "miou_truth_states"], title="summary")
+                ["data", "queries", "retrieval_accuracy", "miou", "miou_oracle", "miou_truth_states",
+                 "miou_dataset_masks"], title="summary")
     print(f"-> {args.out / (NAME + '.json')}, {args.out / (NAME + '.png')}")
     return 0
 

@@ -20,7 +20,7 @@ from interreal.transients.hands import HandTrack
 from test_masks import make_ds, toy_sequence, write_keys
 
 NAMES = ["red disk", "blue square"]
-TIMING = {"fps", "cpu_fps", "transients"}  # wall-clock figures (the transient layer's: its seconds)
+TIMING = {"fps", "cpu_fps", "transients", "reused_frames"}  # the run's own figures (wall clock, what it kept)
 
 
 def _masks(ds: Path, n: int) -> list[np.ndarray]:
@@ -51,7 +51,7 @@ def test_a_new_keyframe_makes_only_the_gap_it_splits(rounds):
     ds, *_, steps, _ = rounds
     # frames 0-3 (before keyframe 4) and 5-11 (between 4 and 12) are the first round's; 13-23 are made again,
     # from keyframes 12 and 20: flow pairs 12..22 only
-    assert steps["reused_frames"] == 4 + 7
+    assert steps["reused_frames"] == 4 + 7 == rounds[4]["reused_frames"]
     assert steps["flow_pairs"] == 22 - 12 + 1
 
 

@@ -4,7 +4,8 @@ Modules: keyframes (PNG / LabelMe input, GrabCut for boxes), flow (DIS / RLOF / 
 trust), appearance (per-label colour models), track (chains, fusion, refinement; a GrabCut of each frame where no
 second keyframe corrects the chain), redetect (finding an object
 again after its mask collapsed, from its keyframe's colours and ORB features), confidence (where to add
-keyframes), health (lost / jumped / drifting per frame, a predicted J, the warnings), preview, stage.
+keyframes), health (lost / jumped / drifting per frame, a predicted J, the warnings), reuse (a re-run makes again
+only what a keyframe change touched), preview, stage.
 """
 
 from __future__ import annotations
@@ -37,7 +38,8 @@ DIR/00042.json (LabelMe polygons / rectangles; label ignore, person, hand or arm
 DIR/mapping.yaml names the objects when the dataset has no mapping.yaml. The ignore class is propagated like an
 object into DS/transients/ (left out of poses, motions and training). With --transients auto (the default) the hand
 model finds the hands on every frame and the layer grows them to the arm and sleeve, no painting needed
-(mediapipe 0.10.21, installed by .ci/setup; without it one line says so).
+(mediapipe 0.10.21, installed by .ci/setup; without it one line says so). Run again after adding or changing a
+keyframe: only the stretches between keyframes the change touched are made again (DS/cache/; --no-reuse: all).
 outputs: DS/masks/<fid>.npy, DS/sfm_masks/<image>.png, DS/transients/<fid>.png, DS/previews/, DS/reports/masks.json"""
 
 
@@ -54,7 +56,9 @@ def masks_options(args: argparse.Namespace) -> dict:
 def main(args: argparse.Namespace) -> int:
     opts = masks_options(args)
     fig = propagate(args.dataset, args.keyframes, progress=not args.quiet, **opts)
-    print(f"masks: {fig['frames']} frames, {len(fig['objects'])} objects, {fig['fps']:.1f} frames/s")
+    kept = fig.get("reused_frames", 0)
+    print(f"masks: {fig['frames']} frames, {len(fig['objects'])} objects, {fig['fps']:.1f} frames/s"
+          + (f" ({kept} kept from the last run: no keyframe change touched them)" if kept else ""))
     tr = fig.get("transients") or {}
     line = transient_line(fig)
     if line:

@@ -353,6 +353,7 @@ def _report(rep: StageReport, job: _Job, out: _Chains, hl: H.Health, h: RunHealt
     rep.figures.update({
         "frames": n, "keyframes": sorted(job.kf.masks), "objects": names,
         "fps": out.info["fps"], "cpu_fps": out.info["cpu_fps"],
+        "reused_frames": out.info.get("reused_frames", 0),  # kept from the last run (`reuse`)
         "confidence": {nm: {fids[i]: round(float(conf[i, k]), 4) for i in range(n)} for k, nm in enumerate(names)},
         "area_fraction": {nm: {fids[i]: round(float(cues.area[i, k]), 5) for i in range(n)}
                           for k, nm in enumerate(names)},

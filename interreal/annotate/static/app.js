@@ -683,6 +683,7 @@ function showPropagation(p) {
     const bits = [];
     if (typeof r.frames === "number") bits.push(`${r.frames} frames`);
     if (typeof r.fps === "number") bits.push(`${r.fps.toFixed(1)} frames/s`);
+    if (typeof r.reused_frames === "number" && r.reused_frames > 0) bits.push(`${r.reused_frames} kept from the last run`);
     const conf = r.confidence_mean;
     if (conf && typeof conf === "object") {
       bits.push("mean confidence " + Object.entries(conf).map(([n, c]) => `${n} ${(+c).toFixed(2)}`).join(", "));

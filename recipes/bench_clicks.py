@@ -245,6 +245,10 @@ def main_clicks(args, davis_sequences: Callable, davis_dataset: Callable, propag
         summary["video"] = video_summary(videos)
     runs = [{"kind": "frames", **s} for s in summary["per_sequence"]] + [
         {"kind": "video", **{k: v for k, v in r.items() if k != "rounds"}} for r in videos]
+    # the mean IoU after each click per set, with its seconds (the README's chart: recipes/charts.py)
+    runs += [{"kind": "curve", "set": name, "clicks": k + 1, "iou": v, "s_per_click": round(sub["s_per_click"], 3)}
+             for name, sub in (("DAVIS", summary["davis"]), ("laptop", summary.get("laptop"))) if sub
+             for k, v in enumerate(sub["iou_by_clicks"])]
     write_results(args.out, "masks_clicks", runs, quick=args.quick, clicks=summary, frames=frames,
                   videos=videos, targets={"davis noc90": 10, "davis noc85": 6, "s per click": 0.5,
                                           "video clicks per 100 frames to J >= 0.9": 40},
@@ -257,7 +261,8 @@ def main_clicks(args, davis_sequences: Callable, davis_dataset: Callable, propag
         scatter_chart(args.out / f"masks_clicks{'' if x == 'clicks' else '_seconds'}.png", points, x, "iou",
                       label=lambda r: "", lines_by=lambda r: r["set"], xlabel=xlabel, ylabel="IoU (mean over frames)",
                       title="click to segment: IoU against " + x)
-    print_table(runs, ["kind", "data", "frames", "noc85", "noc90", "iou_1", "s_per_click", "clicks_per_100",
+    print_table([r for r in runs if r["kind"] != "curve"], ["kind", "data", "frames", "noc85", "noc90", "iou_1",
+                                                            "s_per_click", "clicks_per_100",
                        "per100_to_j80", "per100_to_j90", "j_min", "wait_s_per_round"], title="clicks (worst first)")
     print(json.dumps({k: v for k, v in summary.items() if k != "per_sequence"}, indent=1))
     return 0

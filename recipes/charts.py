@@ -129,6 +129,23 @@ def masks_chart(runs: list[dict], source: str, path: Path) -> Path | None:
                    "keyframes per 100 frames (annotation effort, log)", "mean J (IoU)", legend="lower right")
 
 
+def clicks_chart(runs: list[dict], source: str, path: Path) -> Path | None:
+    """Clicks against mean IoU per set (the simulated user of `bench_masks.py --clicks`), NoC levels drawn."""
+    curve = [r for r in runs if r.get("kind") == "curve" and r.get("iou") is not None]
+    if not curve:
+        return None
+    plt, fig, ax = _figure()
+    for name in dict.fromkeys(r["set"] for r in curve):
+        rs = sorted((r for r in curve if r["set"] == name), key=lambda r: r["clicks"])
+        ax.plot([r["clicks"] for r in rs], [r["iou"] for r in rs], "-o", ms=3,
+                label=f"{name} ({rs[0].get('s_per_click', 0):.2f} s a click)")
+    for level in (0.85, 0.9):
+        ax.axhline(level, color="0.6", lw=0.8, ls="--")
+        ax.annotate(f"NoC@{round(100 * level)}", (1, level), fontsize=6, xytext=(2, 2), textcoords="offset points")
+    return _finish(plt, fig, ax, path, "click to segment: clicks against accuracy", source,
+                   "clicks (simulated user)", "mean IoU", log="", legend="lower right")
+
+
 def model_size_chart(runs: list[dict], source: str, path: Path) -> Path | None:
     """Parameters (the model's cost) against held-out PSNR per room; the automatic size starred."""
     runs = [r for r in runs if r.get("params") and r.get("psnr") is not None]
@@ -172,7 +189,7 @@ def train_chart(runs: list[dict], source: str, path: Path) -> Path | None:
 
 CHARTS: dict[str, Callable[[list[dict], str, Path], Path | None]] = {
     "render": render_chart, "poses": poses_chart, "masks": masks_chart, "model_size": model_size_chart,
-    "train": train_chart,
+    "train": train_chart, "masks_clicks": clicks_chart,
 }
 
 

@@ -13,7 +13,8 @@ SfM and PnP cannot follow.
     python recipes/bench_motions.py --quick --hard --true-masks --routes edge,stage --out bench/  # routes' ceiling
 
 `--true-masks` gives every route the simulator's own masks in place of the propagated ones: what the motion routes
-can do with perfect masks, apart from what propagation loses.
+can do with perfect masks, apart from what propagation loses. `--follow N` annotates the frames the masks stage asks
+for next (with the truth) until the capture has N keyframes, as a user who follows its advice would.
 """
 
 from __future__ import annotations
@@ -47,6 +48,36 @@ def make_dataset(root: Path, seed: int, frames: int, size: tuple[int, int], **sy
         process(cap / "video.mp4", ds, keyframes=cap / "annotations" / "keyframes",
                 labels=cap / "annotations" / "states.yaml", motions=False)
     return cap, ds
+
+
+def follow_suggestions(cap: Path, ds: Path, keyframes: int, paint: bool) -> tuple[Path, list[str]]:
+    """A copy of the dataset whose masks come from the capture's keyframes plus the frames the masks stage asks for
+    next, annotated with the simulator's truth as a careful person would (the arm and person as background, or
+    painted with `paint`), one at a time until there are `keyframes`; each round re-runs `interreal masks` (only the
+    gaps the new keyframe touches). The poses are the dataset's. Returns the copy and the frames added."""
+    import shutil
+
+    import cv2
+
+    from interreal import atomic
+    from interreal.masks import propagate
+    from interreal.synth.capture import annotation_index
+
+    out, kdir = ds.parent / f"ds_follow{keyframes}", ds.parent / f"keys_follow{keyframes}"
+    if not out.exists():
+        shutil.copytree(ds, out)
+    if not kdir.exists():
+        shutil.copytree(cap / "annotations" / "keyframes", kdir)
+    added: list[str] = []
+    while True:
+        fig = propagate(out, kdir, progress=False, preview="none")
+        have = {p.stem for p in kdir.glob("*.png")}
+        picks = [f for f in fig.get("suggested_frames", []) if f not in have]
+        if len(have) >= keyframes or not picks:
+            return out, added
+        inst = cv2.imread(str(cap / "gt" / "instance" / f"{int(picks[0]):05d}.png"), cv2.IMREAD_UNCHANGED)
+        atomic.write_image(kdir / f"{picks[0]}.png", annotation_index(inst, paint_occluders=paint))
+        added.append(picks[0])
 
 
 def score(motion, fig: dict[str, Any], truth, true_states: np.ndarray) -> dict[str, Any]:
@@ -130,6 +161,9 @@ def main() -> int:
                                                                   "propagated ones (the routes' ceiling)")
         p.add_argument("--paint-occluders", action="store_true", help="the keyframes paint the person and the arm "
                                                                        "as the ignore class (the transient layer)")
+        p.add_argument("--follow", type=int, default=0, metavar="N",
+                       help="the masks stage's suggested frames annotated (with the truth) until N keyframes, as a user "
+                            "who follows its advice would (the masks re-made, the poses kept)")
 
     args = bench_args("motions", __doc__.splitlines()[0], extra)
     seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else [4, 6] if args.quick else [1, 2, 3, 4, 5, 6]
@@ -139,6 +173,9 @@ def main() -> int:
     runs = []
     for seed in seeds:
         cap, ds = make_dataset(args.out / "_motions_work", seed, frames, size, **synth)
+        if args.follow:
+            ds, added = follow_suggestions(cap, ds, args.follow, args.paint_occluders)
+            print(f"seed {seed}: keyframes added where the masks stage asked: {added or 'none (already there)'}")
         for o in range(2):
             for route in routes:
                 r = {"seed": seed, **run_part(ds, cap, o, route, args.true_masks)}
@@ -151,8 +188,10 @@ def main() -> int:
     print_table(summary, ["route", "part", "measured_right", "seeds", "worst_axis_deg", "worst_range_error",
                           "worst_state_rmse"], f"measured right (the kind, axis <= {RIGHT_AXIS_DEG} deg, range within "
                                                f"{RIGHT_RANGE:.0%}), worst first")
-    write_results(args.out, "motions" + ("_hard" if args.hard else "") + ("_true_masks" if args.true_masks else ""), runs, frames=frames, size=list(size),
-                  seeds=seeds, synth=synth, summary=summary)
+    name = "motions" + ("_hard" if args.hard else "") + ("_true_masks" if args.true_masks else "") + \
+        (f"_follow{args.follow}" if args.follow else "")
+    write_results(args.out, name, runs, frames=frames, size=list(size), seeds=seeds, synth=synth, summary=summary,
+                  follow=args.follow)
     return 0
 
 

@@ -64,8 +64,8 @@ class AutoLayer:
 
 def layer_key(images: list[Path]) -> str:
     """What the layer depends on: the frames' files and this code (no keyframe: a new one leaves it as it was)."""
-    return fingerprint("transients-auto", __version__, MEDIAPIPE_VERSION, files_fingerprint(images),
-                       [WORK_LONG_SIDE, BAND_WIDTH, CORE_ERODE, AROUND, CONTEXT, MAX_SHARE, GRABCUT_ITERS, ROUNDS, SETTLED])
+    settings = [WORK_LONG_SIDE, BAND_WIDTH, CORE_ERODE, AROUND, CONTEXT, MAX_SHARE, GRABCUT_ITERS, ROUNDS, SETTLED]
+    return fingerprint("transients-auto", __version__, MEDIAPIPE_VERSION, files_fingerprint(images), settings)
 
 
 def save_layer(path: Path, key: str, layer: AutoLayer) -> None:

@@ -86,6 +86,32 @@ def test_a_stretch_cut_short_is_made_again(rounds, tmp_path):
     assert all(np.array_equal(a, b) for a, b in zip(_masks(again, 24), _masks(fresh, 24), strict=True))
 
 
+def test_a_cache_that_cannot_be_written_is_one_warning(tmp_path, monkeypatch):
+    """A full or read-only disk under DS/cache: the run's masks are written as ever, one warning says the next run
+    makes every frame again, and it does (nothing half-kept is taken)."""
+    from interreal.masks import reuse
+
+    images, truths = toy_sequence(n=12)
+    ds = make_ds(tmp_path, images)
+    keys = write_keys(tmp_path / "k", truths, [0, 11], NAMES)
+
+    write = reuse.atomic.write_bytes
+
+    def full(path, data):
+        if "cache" in Path(path).parts:
+            raise OSError(28, "No space left on device")
+        write(path, data)
+
+    monkeypatch.setattr(reuse.atomic, "write_bytes", full)
+    fig = propagate(ds, keys, preview="none", progress=False, transients="off")
+    assert len(list((ds / "masks").glob("*.npy"))) == 12 and fig["reused_frames"] == 0
+    rep = json.loads((ds / "reports" / "masks.json").read_text())
+    assert [w["cause"] for w in rep["warnings"]].count("cache-not-kept") == 1
+    monkeypatch.undo()
+    shutil.rmtree(ds / "reports")
+    assert propagate(ds, keys, preview="none", progress=False, transients="off")["reused_frames"] == 0
+
+
 def test_stretches_of_a_run():
     assert chain_segments([0, 5, 9], 10) == [Segment("gap", 0, 5), Segment("gap", 5, 9)]  # no frame before or after
     segs = chain_segments([3, 4, 7], 10)

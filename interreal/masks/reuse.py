@@ -75,8 +75,10 @@ class Reuse:
             fingerprint("masks-segment", CACHE_VERSION, __version__, s.kind, s.a, s.b,
                         files_fingerprint(images[s.a:s.b + 1]), [digest[k] for k in s.keys], settings)
             for s in self.segments}
-        self.found = {s for s, k in self.key.items() if k is not None and (root / k / DONE_FILE).is_file()}
+        self.found = {s for s, k in self.key.items() if k is not None and (root / k / DONE_FILE).is_file()
+                      and all((root / k / f"{t:06d}.png").is_file() for t in s.frames)}
         self._of = {t: s for s in self.segments for t in s.frames}
+        self.failed: str | None = None  # why this run's stretches could not be kept (a full or read-only disk)
 
     @property
     def reused_frames(self) -> int:
@@ -85,9 +87,12 @@ class Reuse:
     def save_frame(self, pos: int, labels: np.ndarray) -> None:
         """A made frame's labels ((H, W) uint8), kept for the next run when its stretch has a key."""
         s = self._of.get(pos)
-        key = None if s is None or s in self.found else self.key[s]
+        key = None if s is None or s in self.found or self.failed else self.key[s]
         if key is not None:
-            atomic.write_bytes(self.root / key / f"{pos:06d}.png", cv2.imencode(".png", labels)[1].tobytes())
+            try:
+                atomic.write_bytes(self.root / key / f"{pos:06d}.png", cv2.imencode(".png", labels)[1].tobytes())
+            except OSError as exc:  # the cache is a convenience: the run's own outputs do not wait on it
+                self.failed = str(exc)
 
     def replay(self) -> Iterator[tuple[int, np.ndarray, dict[str, np.ndarray]]]:
         """(position, labels, health cue rows) of every frame of the stretches found, read back."""
@@ -112,12 +117,15 @@ class Reuse:
                     prop.motion.update(zip(s.pairs, z["motion"].tolist()))
                 for name in EVENT_LISTS:
                     getattr(prop, name).extend(Event(**{**e, "sides": tuple(e["sides"])}) for e in events[name])
-            elif key is not None:
+            elif key is not None and not self.failed:
                 events = {name: [asdict(e) for e in getattr(prop, name) if e.pos in s.frames] for name in EVENT_LISTS}
                 arrays = {f"cues_{name}": v for name, v in cues.rows(frames).items()}
-                with atomic.atomic_open(self.root / key / DONE_FILE) as fh:
-                    np.savez(fh, events=np.array(json.dumps(events)),
-                             motion=np.array([prop.motion.get(t, 0.0) for t in s.pairs]), **arrays)
+                try:
+                    with atomic.atomic_open(self.root / key / DONE_FILE) as fh:
+                        np.savez(fh, events=np.array(json.dumps(events)),
+                                 motion=np.array([prop.motion.get(t, 0.0) for t in s.pairs]), **arrays)
+                except OSError as exc:
+                    self.failed = str(exc)
         for name in EVENT_LISTS:  # the chains append from two threads: one order, whatever ran first
             getattr(prop, name).sort(key=lambda e: (e.pos, e.obj, e.how))
         keep = {k for k in self.key.values() if k is not None}

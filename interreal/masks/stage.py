@@ -190,7 +190,10 @@ def _auto_layer(rep: StageReport, job: _Job, auto: bool, no_model: str | None, p
             layer = propose(job.load, len(job.fids), job.size, progress=progress)
             st.update(layer.seconds)
         if reuse:
-            save_layer(cache, key, layer)
+            try:
+                save_layer(cache, key, layer)
+            except OSError as exc:  # a convenience for the next run: this one goes on
+                rep.warn(f"the transient layer was not kept for the next run ({exc})", cause="cache-not-kept")
         return layer
     if no_model:
         rep.warn(f"no automatic transient layer: {no_model}; or paint the hand / person as `ignore` on the "
@@ -289,6 +292,9 @@ def _run_chains(rep: StageReport, job: _Job, cfg: TrackConfig, layer: AutoLayer 
             out.fine, out.fine_key = fine.result()
             if kept is not None:
                 kept.finish(out.cues, prop)
+                if kept.failed:
+                    rep.warn(f"this run's masks were not kept for the next ({kept.failed}): the next run makes every "
+                             f"frame again", cause="cache-not-kept")
             t_write += time.perf_counter() - tw
         compute = time.perf_counter() - t_start - t_write
         cpu = time.process_time() - c_start - c_write

@@ -76,9 +76,21 @@ class Reuse:
                         files_fingerprint(images[s.a:s.b + 1]), [digest[k] for k in s.keys], settings)
             for s in self.segments}
         self.found = {s for s, k in self.key.items() if k is not None and (root / k / DONE_FILE).is_file()
-                      and all((root / k / f"{t:06d}.png").is_file() for t in s.frames)}
+                      and all(self._frame(k, t).is_file() for t in s.frames)}
         self._of = {t: s for s in self.segments for t in s.frames}
+        self._records: dict[Segment, dict[str, Any]] = {}  # the found stretches' DONE_FILE, read once
         self.failed: str | None = None  # why this run's stretches could not be kept (a full or read-only disk)
+
+    def _frame(self, key: str, pos: int) -> Path:
+        return self.root / key / f"{pos:06d}.png"
+
+    def _record(self, s: Segment) -> dict[str, Any]:
+        """A found stretch's health cue rows (by name), events (by list) and flow motion (per pair)."""
+        if s not in self._records:
+            with np.load(self.root / self.key[s] / DONE_FILE) as z:
+                self._records[s] = {"cues": {name[5:]: z[name] for name in z.files if name.startswith("cues_")},
+                                    "events": json.loads(str(z["events"])), "motion": z["motion"].tolist()}
+        return self._records[s]
 
     @property
     def reused_frames(self) -> int:
@@ -90,20 +102,19 @@ class Reuse:
         key = None if s is None or s in self.found or self.failed else self.key[s]
         if key is not None:
             try:
-                atomic.write_bytes(self.root / key / f"{pos:06d}.png", cv2.imencode(".png", labels)[1].tobytes())
+                atomic.write_bytes(self._frame(key, pos), cv2.imencode(".png", labels)[1].tobytes())
             except OSError as exc:  # the cache is a convenience: the run's own outputs do not wait on it
                 self.failed = str(exc)
 
     def replay(self) -> Iterator[tuple[int, np.ndarray, dict[str, np.ndarray]]]:
         """(position, labels, health cue rows) of every frame of the stretches found, read back."""
         for s in sorted(self.found, key=lambda x: x.a):
-            d = self.root / self.key[s]
-            with np.load(d / DONE_FILE) as z:
-                rows = {name[5:]: z[name] for name in z.files if name.startswith("cues_")}
+            rows = self._record(s)["cues"]
             for i, t in enumerate(s.frames):
-                labels = cv2.imread(str(d / f"{t:06d}.png"), cv2.IMREAD_UNCHANGED)
+                labels = cv2.imread(str(self._frame(self.key[s], t)), cv2.IMREAD_UNCHANGED)
                 if labels is None:
-                    raise FileNotFoundError(f"{d / f'{t:06d}.png'} is missing: delete {self.root} and run again")
+                    raise FileNotFoundError(f"{self._frame(self.key[s], t)} is unreadable: delete {self.root} and "
+                                            f"run again")
                 yield t, labels, {name: v[i] for name, v in rows.items()}
 
     def finish(self, cues: Any, prop: Any) -> None:
@@ -112,11 +123,10 @@ class Reuse:
         for s in self.segments:
             key, frames = self.key[s], list(s.frames)
             if s in self.found:
-                with np.load(self.root / key / DONE_FILE) as z:
-                    events = json.loads(str(z["events"]))
-                    prop.motion.update(zip(s.pairs, z["motion"].tolist()))
+                rec = self._record(s)
+                prop.motion.update(zip(s.pairs, rec["motion"]))
                 for name in EVENT_LISTS:
-                    getattr(prop, name).extend(Event(**{**e, "sides": tuple(e["sides"])}) for e in events[name])
+                    getattr(prop, name).extend(Event(**{**e, "sides": tuple(e["sides"])}) for e in rec["events"][name])
             elif key is not None and not self.failed:
                 events = {name: [asdict(e) for e in getattr(prop, name) if e.pos in s.frames] for name in EVENT_LISTS}
                 arrays = {f"cues_{name}": v for name, v in cues.rows(frames).items()}

@@ -342,11 +342,11 @@ class Propagator(StepEvidence):
     def _run(self, anchors: dict[int, np.ndarray], skip: set[Segment]) -> Iterator[FrameResult]:
         keys = sorted(anchors)
         todo = [s for s in chain_segments(keys, self.n) if s not in skip]
-        gaps = [(s.a, s.b) for s in todo if s.kind == "gap"]
+        gaps, kinds = [(s.a, s.b) for s in todo if s.kind == "gap"], {s.kind for s in todo}
         # every flow pair in the order the chains below ask for it: the worker runs ahead across chains and gaps
-        before = range(keys[0] - 1, -1, -1) if any(s.kind == "before" for s in todo) else range(0)
+        before = range(keys[0] - 1, -1, -1) if "before" in kinds else range(0)
         between = [t for a, b in gaps for t in range(a, b)]
-        after = range(keys[-1], self.n - 1) if any(s.kind == "after" for s in todo) else range(0)
+        after = range(keys[-1], self.n - 1) if "after" in kinds else range(0)
         # a gap's backward Steps wait for its backward chain, made while the forward chain passes (1.5 MB each at
         # 480 px): on a long gap only the forward ones are made ahead, as the stored chain turns float16 there
         long_gap = {t for a, b in gaps if b - a > LONG_GAP for t in range(a, b)}
@@ -379,8 +379,8 @@ class Propagator(StepEvidence):
         finally:
             if chains is not None:
                 chains.shutdown(wait=True, cancel_futures=True)
-        yield from self._one_sided(keys[-1], range(keys[-1] + 1, self.n) if after else after, soft0[keys[-1]],
-                                   arrivals, nxt=False)
+        yield from self._one_sided(keys[-1], range(keys[-1] + 1, self.n) if "after" in kinds else range(0),
+                                   soft0[keys[-1]], arrivals, nxt=False)
         for k in keys:
             yield self._keyframe(k, anchors[k], arrivals[k])
 

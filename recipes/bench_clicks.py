@@ -246,17 +246,16 @@ def main_clicks(args, davis_sequences: Callable, davis_dataset: Callable, propag
     runs = [{"kind": "frames", **s} for s in summary["per_sequence"]] + [
         {"kind": "video", **{k: v for k, v in r.items() if k != "rounds"}} for r in videos]
     # the mean IoU after each click per set, with its seconds (the README's chart: recipes/charts.py)
-    runs += [{"kind": "curve", "set": name, "clicks": k + 1, "iou": v, "s_per_click": round(sub["s_per_click"], 3)}
-             for name, sub in (("DAVIS", summary["davis"]), ("laptop", summary.get("laptop"))) if sub
-             for k, v in enumerate(sub["iou_by_clicks"])]
+    curve_rows = [{"kind": "curve", "set": name, "clicks": k + 1, "iou": v, "s_per_click": round(sub["s_per_click"], 3)}
+                  for name, sub in (("DAVIS", summary["davis"]), ("laptop", summary.get("laptop"))) if sub
+                  for k, v in enumerate(sub["iou_by_clicks"])]
+    runs += curve_rows
     write_results(args.out, "masks_clicks", runs, quick=args.quick, clicks=summary, frames=frames,
                   videos=videos, targets={"davis noc90": 10, "davis noc85": 6, "s per click": 0.5,
                                           "video clicks per 100 frames to J >= 0.9": 40},
                   note="NoC: clicks of the simulated user until IoU >= 0.85 / 0.90 (20 when never); seconds per "
                        "click: interreal.masks.clicks.segment on a shared 2-core machine")
-    points = [{"set": name, "clicks": k + 1, "iou": v, "seconds": round((k + 1) * sub["s_per_click"], 3)}
-              for name, sub in (("DAVIS", summary["davis"]), ("laptop", summary.get("laptop"))) if sub
-              for k, v in enumerate(sub["iou_by_clicks"])]
+    points = [{**r, "seconds": round(r["clicks"] * r["s_per_click"], 3)} for r in curve_rows]
     for x, xlabel in (("clicks", "clicks"), ("seconds", "seconds of computation (clicks x mean s per click)")):
         scatter_chart(args.out / f"masks_clicks{'' if x == 'clicks' else '_seconds'}.png", points, x, "iou",
                       label=lambda r: "", lines_by=lambda r: r["set"], xlabel=xlabel, ylabel="IoU (mean over frames)",

@@ -138,7 +138,8 @@ def heldout_views(run, capture, count: int, scale: float = 1.0) -> list[dict]:
         if scale != 1.0:
             intr = intr.scaled(max(8, round(intr.w * scale)), max(8, round(intr.h * scale)))
         size = (intr.w, intr.h)
-        dataset = cv2.resize(dataset, size, interpolation=cv2.INTER_NEAREST_EXACT)
+        if dataset.shape[::-1] != size:
+            dataset = cv2.resize(dataset, size, interpolation=cv2.INTER_NEAREST_EXACT)
         truth = lut[cv2.resize(capture.instance(frame.index).astype(np.uint8), size,
                                interpolation=cv2.INTER_NEAREST_EXACT)]
         learned = render_view(run, views.c2w_gl[i], intr, None, time=float(views.times[i]))

@@ -26,7 +26,7 @@ from ..conventions import UNANNOTATED
 from ..report import files_fingerprint, fingerprint
 from .redetect import Event
 
-CACHE_VERSION = 1  # raise when a change makes stored stretches differ from what the chains now make
+CACHE_VERSION = 2  # raise when a change makes stored stretches differ from what the chains now make
 EVENT_LISTS = ("redetections", "refusals", "exits")  # the Propagator's lists of `redetect.Event`
 DONE_FILE = "segment.npz"  # written last: a stretch without it was cut short and is made again
 

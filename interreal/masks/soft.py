@@ -82,3 +82,19 @@ def channels_to_labels(idx: np.ndarray, c: int) -> np.ndarray:
     out = idx + np.uint8(1)
     out[out == c] = 0
     return out
+
+
+def fill_untrusted(soft: np.ndarray, trust: np.ndarray, radius: int, keep: np.ndarray | None = None) -> np.ndarray:
+    """(h, w, C) soft map with its untrusted pixels (trust (h, w) in [0, 1]) taken from the trusted ones within
+    `radius`: where the flow failed, its neighbours know better. `keep` (h, w) in [0, 1], when given, is how far an
+    untrusted pixel keeps the flow's label all the same (`FrameCache.flow_kept`: a plain surface the flow carried).
+    The last channel is the background, which a pixel with nothing trusted nearby (a border that just came into
+    view) takes."""
+    k = (2 * radius + 1, 2 * radius + 1)
+    num = cv2.boxFilter(soft * trust[..., None], -1, k)
+    den = cv2.boxFilter(trust, -1, k)
+    prior = np.zeros(soft.shape[-1], np.float32)
+    prior[-1] = 1.0
+    fill = (num + 1e-3 * prior) / (den[..., None] + 1e-3)
+    w = 1.0 - trust if keep is None else (1.0 - trust) * (1.0 - keep)
+    return (soft + w[..., None] * (fill - soft)).astype(np.float32, copy=False)

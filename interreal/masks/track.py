@@ -38,7 +38,8 @@ from .flow import FlowConfig, FlowEngine, Step, make_step, sampling_grid
 from .evidence import StepEvidence
 from .redetect import Event, RedetectConfig, Redetector
 from .reuse import Segment, chain_segments
-from .soft import anchor_soft, argmax_channels, argmax_labels, channels_to_labels, chsum, filter_objects
+from .soft import (anchor_soft, argmax_channels, argmax_labels, channels_to_labels, chsum, fill_untrusted,
+                   filter_objects)
 from .workframes import WORK_LONG_SIDE, FrameCache, work_size
 
 __all__ = ["TrackConfig", "FrameResult", "Propagator", "median_motion", "FrameCache", "WORK_LONG_SIDE",
@@ -58,6 +59,10 @@ class TrackConfig:
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     work_long_side: int = -1         # flow and propagation resolution (long side, px); 0 = full size, -1 = WORK_LONG_SIDE
     fill_radius: int = 7             # untrusted pixels take the trusted neighbourhood's value within this radius
+    # between keyframes, plain pixels the flow carries their colour to keep its label and are not filled
+    # (`FrameCache.flow_kept`): a plain door's inside is untrusted flow whose trusted neighbours are its rim and the
+    # background, and the fill ate it step by step
+    fill_plain: bool = True
     refine_radius: int = 3           # guided filter radius at work resolution (0 = no per-step refinement)
     refine_eps: float = 0.02         # guided filter regulariser (on [0, 1] intensities, squared)
     sharpen: float = 2.0             # per-step exponent on the soft map (1 = none); counters warping blur
@@ -272,15 +277,9 @@ class Propagator(StepEvidence):
         # tracking, and then the temporal weights alone decide the fusion.
         acc = st.warp(acc)
         acc[..., 0] = np.minimum(acc[..., 0], trust)
-        r = self.cfg.fill_radius
-        if r > 0:
-            k = (2 * r + 1, 2 * r + 1)
-            num = cv2.boxFilter(warped * trust[..., None], -1, k)
-            den = cv2.boxFilter(trust, -1, k)
-            prior = np.zeros(self.k + 1, np.float32)
-            prior[-1] = 1.0  # nothing trusted nearby (e.g. a border that just came into view): background
-            fill = (num + 1e-3 * prior) / (den[..., None] + 1e-3)
-            warped = trust[..., None] * warped + (1 - trust[..., None]) * fill
+        if self.cfg.fill_radius > 0:
+            keep = self.cache.flow_kept(src, dst, st.warp) if self.cfg.fill_plain and not one_sided else None
+            warped = fill_untrusted(warped, trust, self.cfg.fill_radius, keep)
         outside = chsum(warped)[..., 0] < 1e-3
         warped[outside, -1] = 1.0  # nothing to pull from (left the image): background until a keyframe says otherwise
         image = self.cache.work(dst)

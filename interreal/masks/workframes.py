@@ -7,6 +7,8 @@ the current gap, so the forward and backward chains decode nothing twice.
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from typing import Callable
 
 import cv2
@@ -25,7 +27,10 @@ class FrameCache:
         self._full: dict[int, np.ndarray] = {}
         self._work: dict[int, np.ndarray] = {}
         self._bins: dict[int, np.ndarray] = {}
-        self._texture: dict[int, np.ndarray] = {}
+        # outlives `drop` (a step reads its source frame's record after the frame's image is gone), at most
+        # TEXTURE_KEPT of them
+        self._texture: OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
+        self._texture_lock = threading.Lock()
 
     def full(self, pos: int) -> np.ndarray:
         if pos not in self._full:
@@ -47,16 +52,26 @@ class FrameCache:
             q = self._bins[pos] = quantize(self.work(pos), self.n_bins)
         return q
 
-    def texture(self, pos: int) -> tuple[np.ndarray, np.ndarray, float]:
-        """The work image's chromaticity and brightness ((h, w, 3): r and g over r + g + b, and the grey level), its
-        `texture` and its noise floor, computed once per frame."""
-        t = self._texture.get(pos)
-        if t is None:
-            rgb = self.work(pos).astype(np.float32)
-            g = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-            sigma = noise_floor(g)
-            chroma = rgb[..., :2] / (rgb.sum(-1, keepdims=True) + 1.0)
-            t = self._texture[pos] = (np.dstack([chroma, g]), texture(g, sigma), sigma)
+    def texture(self, pos: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The work image's chromaticity ((h, w, 2): r and g over r + g + b), how plain each pixel is (1 - `texture`)
+        and the inverse of its hue tolerance (AGREE_FLOOR noise floors over the brightness: dark pixels are noisy in
+        hue), computed once per frame and kept for the TEXTURE_KEPT frames used last."""
+        with self._texture_lock:  # the two chains' threads share the records
+            t = self._texture.get(pos)
+            if t is not None:
+                self._texture.move_to_end(pos)
+                return t
+        r, g, b = cv2.split(self.work(pos).astype(np.float32))
+        grey = cv2.cvtColor(cv2.merge([r, g, b]), cv2.COLOR_RGB2GRAY)
+        sigma = noise_floor(grey)
+        total = r + g + b + 1.0
+        chroma = cv2.merge([cv2.divide(r, total), cv2.divide(g, total)])
+        inv_tol = cv2.max(grey, 8.0) * np.float32(1.0 / (AGREE_FLOOR * max(sigma, 0.5)))
+        t = (chroma, 1.0 - texture(grey, sigma), inv_tol)
+        with self._texture_lock:
+            self._texture[pos] = t
+            while len(self._texture) > TEXTURE_KEPT:
+                self._texture.popitem(last=False)
         return t
 
     def flow_kept(self, src: int, dst: int, warp: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
@@ -67,14 +82,12 @@ class FrameCache:
         plain pixel that the flow fills with another hue than its own is a surface the flow lost (a plain wall
         uncovered as a person walks off): there the fill decides, as it does on texture. Hue, not brightness: a
         door that turns toward the light brightens by half in a frame or two."""
-        c_src = self.texture(src)[0]
-        c_dst, tex, sigma = self.texture(dst)
-        diff = np.abs(warp(c_src[..., :2]) - c_dst[..., :2]).sum(-1)
-        diff = cv2.boxFilter(diff, -1, (3, 3))
-        # chromaticity's noise: the grey level's floor over the brightness (dark pixels are noisy in hue)
-        tol = AGREE_FLOOR * max(sigma, 0.5) / np.maximum(c_dst[..., 2], 8.0)
-        agree = np.exp(-np.square(diff / tol))
-        return ((1.0 - tex) * agree).astype(np.float32)
+        c_dst, plain, inv_tol = self.texture(dst)
+        if not plain.any():
+            return plain
+        diff = cv2.transform(cv2.absdiff(warp(self.texture(src)[0]), c_dst), np.ones((1, 2), np.float32))
+        diff = cv2.multiply(cv2.boxFilter(diff, -1, (3, 3)), inv_tol)
+        return cv2.multiply(plain, cv2.exp(-cv2.multiply(diff, diff)))
 
     def put(self, pos: int, full: np.ndarray, work: np.ndarray) -> None:
         """Images decoded elsewhere (the flow worker); kept only if not already cached."""
@@ -86,12 +99,13 @@ class FrameCache:
         return self._full.get(pos)
 
     def keep_only(self, keep: set[int]) -> None:
-        for d in (self._full, self._work, self._bins, self._texture):
-            for k in [k for k in d if k not in keep]:
-                d.pop(k, None)
+        with self._texture_lock:
+            for d in (self._full, self._work, self._bins, self._texture):
+                for k in [k for k in d if k not in keep]:
+                    d.pop(k, None)
 
     def drop(self, pos: int) -> None:
-        for d in (self._full, self._work, self._bins, self._texture):
+        for d in (self._full, self._work, self._bins):
             d.pop(pos, None)
 
 
@@ -114,6 +128,7 @@ def work_size(w: int, h: int, long_side: int) -> tuple[int, int]:
 # a pixel is plain up to PLAIN_LOW times the gradient energy of the noise floor, textured from PLAIN_HIGH times
 # (a ramp between); the flow agrees with a plain pixel's hue within AGREE_FLOOR floors (a Gaussian weight)
 PLAIN_LOW, PLAIN_HIGH, AGREE_FLOOR = 2.0, 8.0, 5.0
+TEXTURE_KEPT = 16  # frames' texture records (about 2 MB each at the default work size; both chains' last steps)
 _LAPLACE = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 
 
@@ -122,8 +137,8 @@ def noise_floor(grey: np.ndarray) -> float:
     response (6 sigma for Gaussian noise), which the image's texture and its compression raise too, so it scales
     with how noisy and how busy the frame is. (Its lower quartile, nearer the true noise, counted a compressed plain
     door as texture: `--hard` door J 0.38 / 0.32 against 0.40 / 0.47.)"""
-    lap = cv2.filter2D(grey, -1, _LAPLACE)
-    return float(np.sqrt(np.pi / 2) * np.abs(lap[1:-1, 1:-1]).mean() / 6.0)
+    lap = cv2.filter2D(grey, -1, _LAPLACE)[1:-1, 1:-1]
+    return float(np.sqrt(np.pi / 2) * cv2.norm(lap, cv2.NORM_L1) / lap.size / 6.0)
 
 
 def texture(grey: np.ndarray, sigma: float | None = None, radius: int = 3) -> np.ndarray:
@@ -135,6 +150,7 @@ def texture(grey: np.ndarray, sigma: float | None = None, radius: int = 3) -> np
     sigma = noise_floor(grey) if sigma is None else sigma
     gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3)
-    energy = cv2.boxFilter(gx * gx + gy * gy, -1, (2 * radius + 1, 2 * radius + 1))
-    ratio = energy / max(24.0 * sigma * sigma, 1e-3)
-    return np.clip((ratio - PLAIN_LOW) / (PLAIN_HIGH - PLAIN_LOW), 0.0, 1.0).astype(np.float32)
+    energy = cv2.boxFilter(cv2.add(cv2.multiply(gx, gx), cv2.multiply(gy, gy)), -1, (2 * radius + 1, 2 * radius + 1))
+    scale = 1.0 / (max(24.0 * sigma * sigma, 1e-3) * (PLAIN_HIGH - PLAIN_LOW))  # the ramp, in OpenCV's calls
+    ramp = cv2.addWeighted(energy, scale, energy, 0.0, -PLAIN_LOW / (PLAIN_HIGH - PLAIN_LOW))
+    return cv2.min(cv2.max(ramp, 0.0), 1.0)

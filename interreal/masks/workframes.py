@@ -2,7 +2,9 @@
 
 Flow and the soft maps live on a smaller grid than the images (`work_size`, `WORK_LONG_SIDE` by default);
 `FrameCache` holds each frame's full-size RGB, its work-size copy and colour bins once for
-the current gap, so the forward and backward chains decode nothing twice.
+the current gap, so the forward and backward chains decode nothing twice, and each frame's texture record: how plain
+each pixel is against the frame's own noise floor (`texture`), from which `FrameCache.flow_kept` says where a plain
+pixel keeps the label the flow brings rather than take its neighbours'.
 """
 
 from __future__ import annotations
@@ -83,8 +85,8 @@ class FrameCache:
         uncovered as a person walks off): there the fill decides, as it does on texture. Hue, not brightness: a
         door that turns toward the light brightens by half in a frame or two."""
         c_dst, plain, inv_tol = self.texture(dst)
-        if not plain.any():
-            return plain
+        if not plain.any():  # textured everywhere: the fill decides everywhere
+            return np.zeros_like(plain)
         diff = cv2.transform(cv2.absdiff(warp(self.texture(src)[0]), c_dst), np.ones((1, 2), np.float32))
         diff = cv2.multiply(cv2.boxFilter(diff, -1, (3, 3)), inv_tol)
         return cv2.multiply(plain, cv2.exp(-cv2.multiply(diff, diff)))

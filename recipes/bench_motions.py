@@ -118,6 +118,28 @@ def true_masks(ds, cap: Path) -> None:
     ds.load_mask = load
 
 
+def mask_j(ds_path: Path, cap: Path, keyframes: set[int]) -> list[float]:
+    """Per object, the mean J of the dataset's masks against the simulator's instance maps over the frames that are
+    not keyframes (where the object is in either): what the routes measure from."""
+    import cv2
+    from interreal.conventions import mask_file
+    from interreal.dataset import load_dataset
+
+    ds = load_dataset(ds_path)
+    vals: list[list[float]] = [[] for _ in ds.object_names]
+    for f in ds.frames:
+        if f.index in keyframes:
+            continue
+        inst = cv2.imread(str(cap / "gt" / "instance" / f"{f.index:05d}.png"), cv2.IMREAD_UNCHANGED)
+        masks = np.load(mask_file(ds_path, f.fid))
+        for k in range(len(vals)):
+            truth = cv2.resize((inst == k + 1).astype(np.uint8), masks.shape[1::-1], interpolation=cv2.INTER_NEAREST) > 0
+            union = (truth | masks[..., k]).sum()
+            if union:
+                vals[k].append(float((truth & masks[..., k]).sum() / union))
+    return [round(float(np.mean(v)), 3) if v else float("nan") for v in vals]
+
+
 def run_part(ds_path: Path, cap: Path, o: int, route: str, truth_masks: bool = False) -> dict[str, Any]:
     from interreal.motions import stage as motions
     from interreal.dataset import known_states, load_dataset
@@ -173,20 +195,24 @@ def main() -> int:
     runs = []
     for seed in seeds:
         cap, ds = make_dataset(args.out / "_motions_work", seed, frames, size, **synth)
+        kdir = cap / "annotations" / "keyframes"
         if args.follow:
             ds, added = follow_suggestions(cap, ds, args.follow, args.paint_occluders)
+            kdir = ds.parent / f"keys_follow{args.follow}"
             print(f"seed {seed}: keyframes added where the masks stage asked: {added or 'none (already there)'}")
+        js = mask_j(ds, cap, {int(p.stem) for p in kdir.glob("*.png")})
+        print(f"seed {seed}: the masks' J over the frames between keyframes: {js}")
         for o in range(2):
             for route in routes:
-                r = {"seed": seed, **run_part(ds, cap, o, route, args.true_masks)}
+                r = {"seed": seed, **run_part(ds, cap, o, route, args.true_masks), "mask_j": js[o]}
                 runs.append(r)
                 print(f"seed {seed} {r['part']} {route}: {r['kind']} accepted={r['accepted']} axis {r.get('axis_deg')} "
                       f"range {r.get('range_error')} states {r.get('state_rmse')} {r.get('reason') or ''}", flush=True)
-    print_table(runs, ["seed", "part", "true_kind", "route", "kind", "axis_deg", "range_error", "state_rmse",
+    print_table(runs, ["seed", "part", "true_kind", "route", "mask_j", "kind", "axis_deg", "range_error", "state_rmse",
                        "accepted", "route_used", "seconds", "reason"], "part motions against the simulator")
     summary = summarise(runs)
     print_table(summary, ["route", "part", "measured_right", "seeds", "worst_axis_deg", "worst_range_error",
-                          "worst_state_rmse"], f"measured right (the kind, axis <= {RIGHT_AXIS_DEG} deg, range within "
+                          "worst_state_rmse", "mask_j_worst_first"], f"measured right (the kind, axis <= {RIGHT_AXIS_DEG} deg, range within "
                                                f"{RIGHT_RANGE:.0%}), worst first")
     name = "motions" + ("_hard" if args.hard else "") + ("_true_masks" if args.true_masks else "") + \
         (f"_follow{args.follow}" if args.follow else "")
@@ -209,6 +235,7 @@ def summarise(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
             used = [r for r in rs if r["accepted"]]
             worst = lambda k: max((r[k] for r in used if r.get(k) is not None), default=None)  # noqa: E731
             out.append({"route": route, "part": part, "measured_right": len(right), "seeds": len(rs),
+                        "mask_j_worst_first": sorted(r["mask_j"] for r in rs if r.get("mask_j") is not None),
                         "worst_axis_deg": worst("axis_deg"), "worst_range_error": worst("range_error"),
                         "worst_state_rmse": worst("state_rmse")})
     return sorted(out, key=lambda r: (r["route"] != "stage", r["measured_right"] / max(r["seeds"], 1)))

@@ -260,9 +260,9 @@ def main_clicks(args, davis_sequences: Callable, davis_dataset: Callable, propag
         scatter_chart(args.out / f"masks_clicks{'' if x == 'clicks' else '_seconds'}.png", points, x, "iou",
                       label=lambda r: "", lines_by=lambda r: r["set"], xlabel=xlabel, ylabel="IoU (mean over frames)",
                       title="click to segment: IoU against " + x)
-    print_table([r for r in runs if r["kind"] != "curve"], ["kind", "data", "frames", "noc85", "noc90", "iou_1",
-                                                            "s_per_click", "clicks_per_100",
-                       "per100_to_j80", "per100_to_j90", "j_min", "wait_s_per_round"], title="clicks (worst first)")
+    print_table([r for r in runs if r["kind"] != "curve"],
+                ["kind", "data", "frames", "noc85", "noc90", "iou_1", "s_per_click", "clicks_per_100", "per100_to_j80",
+                 "per100_to_j90", "j_min", "wait_s_per_round"], title="clicks (worst first)")
     print(json.dumps({k: v for k, v in summary.items() if k != "per_sequence"}, indent=1))
     return 0
 

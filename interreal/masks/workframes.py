@@ -63,8 +63,9 @@ class FrameCache:
             if t is not None:
                 self._texture.move_to_end(pos)
                 return t
-        r, g, b = cv2.split(self.work(pos).astype(np.float32))
-        grey = cv2.cvtColor(cv2.merge([r, g, b]), cv2.COLOR_RGB2GRAY)
+        rgb = self.work(pos).astype(np.float32)
+        grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+        r, g, b = cv2.split(rgb)
         sigma = noise_floor(grey)
         total = r + g + b + 1.0
         chroma = cv2.merge([cv2.divide(r, total), cv2.divide(g, total)])

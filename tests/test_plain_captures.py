@@ -65,5 +65,6 @@ def reason_agrees_with_figures(route: str, said: dict, step: dict) -> None:
     if route == "sfm":
         tried = int(re.search(r"over (\d+) attempt", reason).group(1))
         assert tried == step["attempts"] >= 1, (reason, step["attempts"])
-    for number, limit in re.findall(r"(\d+(?:\.\d+)?) px from the masks' outlines, need (\d+(?:\.\d+)?)", reason):
+    outline = r"(\d+(?:\.\d+)?) px from (?:the masks' outlines|them), need (\d+(?:\.\d+)?)"
+    for number, limit in re.findall(outline, reason):
         assert float(number) > float(limit), reason  # refused for a figure on the wrong side of its limit

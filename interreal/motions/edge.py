@@ -3,18 +3,19 @@
 The corners route (`silhouette`) needs the front's four corners in some views; a tall door filmed from close by is
 cut by the image border in every frame, and a plain one gives SfM and PnP nothing to match. What its masks do show
 is its outline, and one straight stretch of it stays in one place in the world whatever the state: the hinge edge.
-1. `static_line`: each straight stretch of a keyframe's outline (keyframe masks are the person's, not propagated)
-   is lifted to the 3D line whose projection lies on the outlines of the other keyframes and of most frames (its two
-   depths searched; the best `KEEP` share of the frames count: bad masks, a hand in front); the stretch that fits
-   best is the hinge, the free edge scoring far worse (on a simulated fridge door with its true masks: 0.5 deg off
-   the true axis, 1.7 % of the scene off its position; the free edge 5.0 px against 1.4);
+1. `hinge_lines`: each pair of straight stretches of two keyframes' outlines (keyframe masks are the person's,
+   not propagated) is triangulated to a 3D line, costed by its distance to every keyframe's outline; the hinge is
+   the one all keyframes agree on (along the hinge side, where a plain door meets its plain body, propagated
+   outlines stray 2-5 px, and a line lifted with them is tens of degrees off); with one keyframe, its stretches
+   are lifted to the line most frames' outlines agree with (`static_line`);
 2. `fit_leaf`: the door is a rectangle hinged on that line, `width` wide and spanning [h0, h1] along it, turned by
    its own angle in each frame: the three sizes are those whose best silhouettes overlap the masks most on average
-   (Nelder-Mead from a grid), then every frame's angle by dynamic programming over the frames in time order (a door
-   turns smoothly: a frame whose mask lost the door follows its neighbours, not a guess from that mask);
+   (Nelder-Mead from a grid; frames labelled at one end share one angle), then every frame's angle by dynamic
+   programming over the frames in time order (a door turns smoothly: a frame whose mask lost the door follows its
+   neighbours, not a guess from that mask); `judge`: bounds on the keyframes, a slide as the rival elsewhere;
 3. the angles are the displacement `fit.articulate` reads: the geometry measures, the labels only orient.
-Its limits: a drawer (nothing of it stays put) is left to the other routes, and with propagated masks that leave the
-hinge edge on most frames the line is not found (docs/measurements.md, 2026-12-05).
+Its limits: a drawer (nothing of it stays put) is left to the other routes; the range comes from propagated masks,
+which on plain doors put it 7-17 % off on some simulated captures (docs/measurements.md, 2026-12-05).
 """
 
 from __future__ import annotations
@@ -40,11 +41,14 @@ ANGLES = 144          # angle grid of a frame's search (2.5 deg), refined by a p
 SMOOTH = 0.01         # overlap given up per degree the leaf turns between neighbouring frames (dynamic programming)
 STILL = 10.0          # ... this many times more between frames the labels say rest at one state
 MIN_FRAME_IOU = 0.7   # a frame whose best silhouette overlaps its mask less than this is not measured
-MAX_OUTLINE_PX = 3.0  # the turning leaf's outline within this of the masks' (median over frames, work-size px)
-SLIDE_MARGIN = 0.05   # ... and its overlap with the masks this much above a slide's of the same front, which takes
-#                       its best reach in each frame, unsmoothed: a drawer's outline has static edges as well (the
-#                       cabinet's opening). Simulated plain captures, exact masks and occluders: doors 0.07-0.14
-#                       above, drawers 0.03 above to 0.14 under.
+MAX_OUTLINE_PX = 3.0  # the turning leaf's outline within this of the keyframes' (median, work-size px) ...
+MOVED = 0.25          # ... and, over the frames turned at least this share of the widest turn from rest, ...
+OUTLINE_RATIO = 0.8   # ... within this share of the distance a slide of its front keeps from the masks' outlines ...
+SLIDE_MARGIN = 0.05   # ... and overlapping those masks this much more than the slide, which takes its best reach in
+#                       each frame, unsmoothed: a drawer's outline has static edges too (the cabinet's opening).
+#                       Simulated plain captures (--hard seeds 1-10), moved frames, propagated masks: doors' leaves
+#                       0.44-0.70 of the slide's outline distance (one 0.89), -0.01 to +0.14 in overlap; drawers
+#                       0.73-1.8; with the simulator's masks one drawer as a flap 0.69 and +0.03. Chosen on those seeds.
 KEY_WEIGHT = 5.0      # a keyframe's overlap counts this many frames' in the dynamic programming
 MIN_CONFIDENCE = 0.5  # frames whose mask the masks stage trusts less than this are left out (a plain door's mask
 #                       leaves it within a few frames of a keyframe, and the stage knows: 0.07-0.3 there)
@@ -165,12 +169,9 @@ def segments(mask: np.ndarray, min_len: float) -> list[np.ndarray]:
 
 def static_line(out: Outlines, views: Views, key: int, seg: np.ndarray, keys: list[int], scale: float) -> Line:
     """The 3D line through keyframe `key`'s outline stretch `seg` that lies on the outlines of the other keyframes
-    and of the best `KEEP` of the frames: its two end depths searched on a grid, then refined."""
-    c2w = np.linalg.inv(views.w2c[key])
-    und = cv2.undistortPoints(seg.reshape(-1, 1, 2), views.K, out.dist).reshape(-1, 2)
-    rays = (c2w[:3, :3] @ np.c_[und, np.ones(2)].T).T
-    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-    centre = c2w[:3, 3]
+    and of the best `KEEP` of the frames: its two end depths searched on a grid, then refined. Used where a single
+    keyframe shows the part (`keyframe_lines` needs two)."""
+    centre, rays = _rays(views, out, key, seg)
     t = np.linspace(0.15, 0.85, 12)[:, None]  # its ends may be corners shared with edges that move
     on_key = np.array([i in keys and i != key for i in out.frames])
 
@@ -190,14 +191,76 @@ def static_line(out: Outlines, views: Views, key: int, seg: np.ndarray, keys: li
     return Line(centre + np.exp(res.x[0]) * rays[0], centre + np.exp(res.x[1]) * rays[1], float(res.fun), key)
 
 
+def _rays(views: Views, out: Outlines, key: int, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Keyframe `key`'s camera centre (3,) and the unit rays (2, 3) through the ends of its outline stretch `seg`."""
+    c2w = np.linalg.inv(views.w2c[key])
+    und = cv2.undistortPoints(seg.reshape(-1, 1, 2).astype(float), views.K, out.dist).reshape(-1, 2)
+    rays = (c2w[:3, :3] @ np.c_[und, np.ones(2)].T).T
+    return c2w[:3, 3], rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+
+def triangulate(views: Views, out: Outlines, a: int, seg_a: np.ndarray, b: int, seg_b: np.ndarray) -> Line | None:
+    """The 3D line two keyframes' outline stretches are views of (the planes through each camera and its stretch
+    meet there), spanning stretch `seg_a`'s ends; None when the planes are within 5 deg of one another."""
+    (ca, ra), (cb, rb) = _rays(views, out, a, seg_a), _rays(views, out, b, seg_b)
+    na, nb = np.cross(ra[0], ra[1]), np.cross(rb[0], rb[1])
+    na, nb = na / np.linalg.norm(na), nb / np.linalg.norm(nb)
+    u = np.cross(na, nb)
+    if np.linalg.norm(u) < np.sin(np.radians(5.0)):
+        return None
+    u /= np.linalg.norm(u)
+    p0 = np.linalg.solve(np.array([na, nb, u]), [na @ ca, nb @ cb, 0.0])
+    ends = []
+    for r in ra:  # the line's point nearest each end ray of stretch a
+        m = np.array([[1.0, -(u @ r)], [u @ r, -1.0]])
+        s, _ = np.linalg.solve(m, [(ca - p0) @ u, (ca - p0) @ r])
+        ends.append(p0 + s * u)
+    return None if np.linalg.norm(ends[1] - ends[0]) < 1e-9 else Line(ends[0], ends[1], 0.0, a)
+
+
+def keyframe_lines(views: Views, out: Outlines, keys: list[int], kout: Outlines) -> list[Line]:
+    """Every pair of straight stretches of two keyframes' outlines triangulated to a 3D line, costed by its mean
+    distance to the outlines of the keyframes it shows in (a person drew those; two keyframes agree with any line
+    they triangulate, so with two the best `KEEP` of the frames' outlines count as much). Why keyframes: along the
+    hinge side, where a plain door meets its plain body, propagated outlines stray, and lines lifted with them do."""
+    h, w = views.masks[keys[0]].shape
+    segs = {k: segments(views.masks[k], SEGMENT_SHARE * float(np.hypot(h, w))) for k in keys}
+    t = np.linspace(0.15, 0.85, 12)[:, None]
+    lines = []
+    for a in keys:
+        for b in keys:
+            for sa in segs[a] if b != a else []:
+                for sb in segs[b]:
+                    ln = triangulate(views, out, a, sa, b, sb)
+                    if ln is None:
+                        continue
+                    pts = ln.p + t * (ln.q - ln.p)
+                    on_keys = kout.distances(pts)
+                    if np.isfinite(on_keys).sum() < min(3, len(kout.frames)):  # seen in every keyframe (or three)
+                        continue
+                    ln.cost = float(np.nanmean(on_keys))
+                    if len(kout.frames) < 3:
+                        d = out.distances(pts)
+                        vals = np.sort(d[np.isfinite(d)])
+                        ln.cost = 0.5 * (ln.cost + (float(vals[:max(3, int(KEEP * len(vals)))].mean())
+                                                    if len(vals) >= 3 else TRUNC_PX))
+                    lines.append(ln)
+    return lines
+
+
 def hinge_lines(views: Views, frames: list[int], keys: list[int]) -> tuple[list[Line], Outlines]:
-    """Every keyframe outline stretch lifted to its best static 3D line, best first, one per line in the world."""
+    """Hinge candidates, best first, one per line in the world: triangulated from pairs of keyframes
+    (`keyframe_lines`), or with one keyframe its outline stretches lifted to the line most frames agree with."""
     out = Outlines(views, frames)
     centres = np.array([np.linalg.inv(views.w2c[i])[:3, 3] for i in frames])
     scale = float(np.linalg.norm(centres - centres.mean(0), axis=1).mean()) or 1.0
     h, w = views.masks[keys[0]].shape
-    lines = [static_line(out, views, k, seg, keys, scale)
-             for k in keys for seg in segments(views.masks[k], SEGMENT_SHARE * float(np.hypot(h, w)))]
+    kout = Outlines(views, keys)
+    if len(kout.frames) >= 2:
+        lines = keyframe_lines(views, out, kout.frames, kout)
+    else:
+        lines = [static_line(out, views, k, seg, keys, scale)
+                 for k in keys for seg in segments(views.masks[k], SEGMENT_SHARE * float(np.hypot(h, w)))]
     distinct: list[Line] = []
     for ln in sorted(lines, key=lambda ln: ln.cost):  # one line seen in several keyframes is one candidate
         mid = 0.5 * (ln.p + ln.q)
@@ -296,22 +359,28 @@ def refine(curve: np.ndarray, j: int, angles: np.ndarray) -> float:
     return float(angles[j] + np.clip(shift, -0.5, 0.5) * (angles[1] - angles[0]))
 
 
-def fit_leaf(sil: Silhouettes, line: Line, frames: list[int], keys: list[int]) -> tuple[np.ndarray, float]:
-    """(width, h0, h1) of the leaf whose best silhouettes overlap the masks most, and that overlap: half the
-    keyframes' mean (a person's masks), half the best `KEEP` of at most 16 other frames (propagated masks lose a
-    plain door on whole stretches). Widths and spans in lengths of the line's segment."""
+def fit_leaf(sil: Silhouettes, line: Line, frames: list[int], keys: list[int],
+             ends: list[list[int]] | None = None) -> tuple[np.ndarray, float]:
+    """(width, h0, h1) of the leaf whose best silhouettes overlap the masks most, and that overlap: the keyframes'
+    mean (a person's masks), the best `KEEP` of at most 16 other frames (propagated masks lose a plain door on whole
+    stretches) and, for each of `ends` (the frames labelled closed, those labelled fully open), the best overlap
+    its frames share at one angle, in equal parts. Why the ends: where the door's top and bottom lie outside the
+    image, a wider leaf turned further casts the same silhouette in any one view; only views of one state from
+    different places pin its free edge. Widths and spans in lengths of the line's segment."""
     leaf = Leaf(line)
     coarse = np.linspace(-np.pi, np.pi, 36, endpoint=False)
+    groups = [g for g in (ends or []) if len(g) >= 2]
     some = sorted(set(frames[::max(1, len(frames) // 16)]) - set(keys))
 
     def score(size: np.ndarray) -> float:
         if size[0] <= 0.05 or size[2] - size[1] < 0.2:
             return 0.0
-        on_keys = float(iou_curves(sil, leaf, size, keys, coarse).max(1).mean())
-        if not some:
-            return on_keys
-        rest = np.sort(iou_curves(sil, leaf, size, some, coarse).max(1))[::-1]
-        return 0.5 * on_keys + 0.5 * float(rest[:max(1, int(KEEP * len(rest)))].mean())
+        parts = [float(iou_curves(sil, leaf, size, keys, coarse).max(1).mean())]
+        if some:
+            rest = np.sort(iou_curves(sil, leaf, size, some, coarse).max(1))[::-1]
+            parts.append(float(rest[:max(1, int(KEEP * len(rest)))].mean()))
+        parts += [float(iou_curves(sil, leaf, size, g, coarse).mean(0).max()) for g in groups]
+        return float(np.mean(parts))
 
     start = max((np.array([w, 0.0, 1.0]) for w in np.geomspace(0.1, 3.0, 12)), key=score)
     start = max((start + np.array([0.0, lo, hi]) for lo in (0.0, -0.5) for hi in (0.0, 0.5)), key=score)
@@ -351,6 +420,39 @@ def slide_rival(sil: Silhouettes, out: Outlines, leaf: Leaf, size: np.ndarray, f
     return (float(np.median(dist)) if dist else TRUNC_PX), best[0] / len(some), some
 
 
+def judge(fig: dict[str, Any], sil: Silhouettes, out: Outlines, leaf: Leaf, size: np.ndarray, shown: list[int],
+          phi: np.ndarray, rest: float, keys: list[int]) -> str | None:
+    """Why the leaf at angles `phi` (unwrapped, over `shown`) is no flat door or lid, or None; its figures into
+    `fig`. Absolute bounds are put on the keyframes' outlines (a person drew them; a propagated outline strays 2-5 px
+    from a plain door's own); propagated frames only compare the leaf with its rival, a slide of its front, on the
+    same masks, and only where the two differ: the frames turned at least `MOVED` of the way from rest."""
+    key_px = [d for i, a in zip(shown, phi) if i in keys and (d := out.hull_distance(leaf.corners(*size, a), i))
+              is not None]
+    key_px = float(np.median(key_px)) if key_px else TRUNC_PX
+    away = np.abs(phi - rest)
+    moved = [i for i, a in zip(shown, away) if a >= MOVED * away.max()]
+    slide_px, slide_iou, some = slide_rival(sil, out, leaf, size, moved if len(moved) >= 3 else shown, rest)
+    at = [leaf.corners(*size, phi[shown.index(i)]) for i in some]
+    hinge_iou = float(np.mean([sil.iou(c, i) for c, i in zip(at, some)]))
+    hinge_px = [d for c, i in zip(at, some) if (d := out.hull_distance(c, i)) is not None]
+    hinge_px = float(np.median(hinge_px)) if hinge_px else TRUNC_PX
+    fig.update(edge_key_outline_px=round(key_px, 2), edge_outline_px=round(hinge_px, 2),
+               edge_slide_outline_px=round(slide_px, 2), edge_hinge_iou=round(hinge_iou, 3),
+               edge_slide_iou=round(slide_iou, 3), edge_judged_frames=len(some))
+    if key_px > MAX_OUTLINE_PX:
+        return (f"a leaf turning on its static edge does not trace the keyframes' outlines (median {key_px:.1f} px "
+                f"from them, need {MAX_OUTLINE_PX:g}): no flat door or lid")
+    if hinge_iou < MIN_FRAME_IOU:
+        return (f"a leaf turning on its static edge overlaps the masks of the frames it turned in by {hinge_iou:.2f} "
+                f"(need {MIN_FRAME_IOU}): no flat door or lid")
+    if hinge_px > OUTLINE_RATIO * slide_px or hinge_iou < slide_iou + SLIDE_MARGIN:
+        return (f"a slide of its front explains the masks of the frames it moved in as well as a leaf turning on its "
+                f"static edge (outline {slide_px:.1f} px against {hinge_px:.1f}, need {OUTLINE_RATIO:g} of it or "
+                f"less; overlap {slide_iou:.2f} against {hinge_iou:.2f}, need {SLIDE_MARGIN:g} less): a drawer, not a "
+                f"flat door or lid")
+    return None
+
+
 def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.ndarray | None = None,
                 known: np.ndarray | None = None) -> tuple[Fit | None, dict[str, Any]]:
     """The hinge about the best static outline line, as a `Fit` over `frames` (the angle per frame), or None and
@@ -370,11 +472,6 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
         return None, fig
     coarse, sil = Silhouettes(views, frames, SEARCH_SIDE), Silhouettes(views, frames)
     shown = [i for i in frames if i in sil.crop]
-    best = max(((ln, *fit_leaf(coarse, ln, shown, keys)) for ln in lines[:4]), key=lambda r: r[2])
-    line, size, mean_iou = best
-    leaf = Leaf(line)
-    angles = np.linspace(-np.pi, np.pi, ANGLES, endpoint=False)
-    curves = iou_curves(sil, leaf, size, shown, angles)
     still, closed, opened = np.zeros(len(shown), bool), np.zeros(len(shown), bool), np.zeros(len(shown), bool)
     if states is not None and known is not None:
         at = np.array(shown)
@@ -382,26 +479,21 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
         if known[at].any():  # the frames at the lowest labelled state: where it rests closed; the highest: open
             closed = known[at] & (states[at] <= states[at][known[at]].min() + 1e-6)
             opened = known[at] & (states[at] >= states[at][known[at]].max() - 1e-6) & ~closed
+    ends = [[shown[f] for f in np.flatnonzero(e)[::max(1, int(e.sum()) // 8)]] for e in (closed, opened)]
+    best = max(((ln, *fit_leaf(coarse, ln, shown, keys, ends)) for ln in lines[:4]), key=lambda r: r[2])
+    line, size, mean_iou = best
+    leaf = Leaf(line)
+    angles = np.linspace(-np.pi, np.pi, ANGLES, endpoint=False)
+    curves = iou_curves(sil, leaf, size, shown, angles)
     weight = np.array([KEY_WEIGHT if i in keys else 1.0 for i in shown])[:, None]  # a person drew those masks
     path = anchored_path(curves * weight, angles, still, [closed, opened])
     phi = np.array([refine(curves[f], j, angles) for f, j in enumerate(path)])
     iou = curves[np.arange(len(shown)), path]
-    hinge_px = [d for i, a in zip(shown, phi) if (d := out.hull_distance(leaf.corners(*size, a), i)) is not None]
-    hinge_px = float(np.median(hinge_px)) if hinge_px else TRUNC_PX
     unwrapped = np.unwrap(phi)
     rest = float(np.median(unwrapped[closed if closed.any() else still if still.any() else slice(0, 1)]))
-    slide_px, slide_iou, some = slide_rival(coarse, out, leaf, size, shown, rest)
-    hinge_iou = float(np.mean([coarse.iou(leaf.corners(*size, phi[shown.index(i)]), i) for i in some]))
-    fig.update(edge_outline_px=round(hinge_px, 2), edge_slide_outline_px=round(slide_px, 2),
-               edge_hinge_iou=round(hinge_iou, 3), edge_slide_iou=round(slide_iou, 3))
-    if hinge_px > MAX_OUTLINE_PX:
-        fig["edge_reason"] = (f"a leaf turning on its static edge does not trace its outline (median {hinge_px:.1f} px "
-                              f"from the masks' outlines, need {MAX_OUTLINE_PX:g}): no flat door or lid")
-        return None, fig
-    if hinge_iou < slide_iou + SLIDE_MARGIN:
-        fig["edge_reason"] = (f"a slide of its front explains the masks as well as a leaf turning on its static edge "
-                              f"(overlap {slide_iou:.2f} against {hinge_iou:.2f}, need {SLIDE_MARGIN:g} less): a drawer, "
-                              f"not a flat door or lid")
+    reason = judge(fig, coarse, out, leaf, size, shown, unwrapped, rest, keys)
+    if reason:
+        fig["edge_reason"] = reason
         return None, fig
     key_iou = [float(v) for i, v in zip(shown, iou) if i in keys]
     fig.update(edge_line_px=round(line.cost, 2), edge_leaf=[round(float(v), 3) for v in size],

@@ -111,7 +111,10 @@ def read_prompts(root: str | Path) -> dict[str, str]:
     return {str(k): str(v) for k, v in raw.items()} if isinstance(raw, dict) else {}
 
 
-def known_states(times: np.ndarray, labels: np.ndarray, given: np.ndarray, tol: float = 0.02
+SAME_STATE = 0.02  # two labels this close name one state: the part rests between them
+
+
+def known_states(times: np.ndarray, labels: np.ndarray, given: np.ndarray, tol: float = SAME_STATE
                  ) -> tuple[np.ndarray, np.ndarray]:
     """(states, known) (N, M) from the labels alone: labelled frames, and frames between two labelled frames (in
     `times` order) whose labels agree within `tol` (the object was held still between them). labels, given (N, M)

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from scipy.optimize import minimize
 
-from ..dataset import Articulation
+from ..dataset import SAME_STATE, Articulation
 from .fit import Fit, articulate
 from .silhouette import Silhouettes, Views, views_of
 
@@ -475,10 +475,10 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
     still, closed, opened = np.zeros(len(shown), bool), np.zeros(len(shown), bool), np.zeros(len(shown), bool)
     if states is not None and known is not None:
         at = np.array(shown)
-        still[1:] = known[at[1:]] & known[at[:-1]] & (np.abs(states[at[1:]] - states[at[:-1]]) < 1e-6)
+        still[1:] = known[at[1:]] & known[at[:-1]] & (np.abs(states[at[1:]] - states[at[:-1]]) <= SAME_STATE)
         if known[at].any():  # the frames at the lowest labelled state: where it rests closed; the highest: open
-            closed = known[at] & (states[at] <= states[at][known[at]].min() + 1e-6)
-            opened = known[at] & (states[at] >= states[at][known[at]].max() - 1e-6) & ~closed
+            closed = known[at] & (states[at] <= states[at][known[at]].min() + SAME_STATE)
+            opened = known[at] & (states[at] >= states[at][known[at]].max() - SAME_STATE) & ~closed
     ends = [[shown[f] for f in np.flatnonzero(e)[::max(1, int(e.sum()) // 8)]] for e in (closed, opened)]
     best = max(((ln, *fit_leaf(coarse, ln, shown, keys, ends)) for ln in lines[:4]), key=lambda r: r[2])
     line, size, mean_iou = best

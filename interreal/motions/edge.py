@@ -14,8 +14,9 @@ is its outline, and one straight stretch of it stays in one place in the world w
    programming over the frames in time order (a door turns smoothly: a frame whose mask lost the door follows its
    neighbours, not a guess from that mask); `judge`: bounds on the keyframes, a slide as the rival elsewhere;
 3. the angles are the displacement `fit.articulate` reads: the geometry measures, the labels only orient.
-Its limits: a drawer (nothing of it stays put) is left to the other routes; the range comes from propagated masks,
-which on plain doors put it 7-17 % off on some simulated captures (docs/measurements.md, 2026-12-05).
+Its limits: a drawer (nothing of it stays put) is left to the other routes; a thick door is a thin leaf here (ranges
+up to 10 % short at a 100 deg opening), and propagated masks put it 6-17 % off on some simulated captures
+(docs/measurements.md, 2026-12-05).
 """
 
 from __future__ import annotations

@@ -22,6 +22,7 @@ up to 10 % short at a 100 deg opening), and propagated masks put it 6-17 % off o
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import permutations, product
 from typing import Any
 
 import cv2
@@ -228,24 +229,22 @@ def keyframe_lines(views: Views, out: Outlines, keys: list[int], kout: Outlines)
     segs = {k: segments(views.masks[k], SEGMENT_SHARE * float(np.hypot(h, w))) for k in keys}
     t = np.linspace(0.15, 0.85, 12)[:, None]
     lines = []
-    for a in keys:
-        for b in keys:
-            for sa in segs[a] if b != a else []:
-                for sb in segs[b]:
-                    ln = triangulate(views, out, a, sa, b, sb)
-                    if ln is None:
-                        continue
-                    pts = ln.p + t * (ln.q - ln.p)
-                    on_keys = kout.distances(pts)
-                    if np.isfinite(on_keys).sum() < min(3, len(kout.frames)):  # seen in every keyframe (or three)
-                        continue
-                    ln.cost = float(np.nanmean(on_keys))
-                    if len(kout.frames) < 3:
-                        d = out.distances(pts)
-                        vals = np.sort(d[np.isfinite(d)])
-                        ln.cost = 0.5 * (ln.cost + (float(vals[:max(3, int(KEEP * len(vals)))].mean())
-                                                    if len(vals) >= 3 else TRUNC_PX))
-                    lines.append(ln)
+    for a, b in permutations(keys, 2):
+        for sa, sb in product(segs[a], segs[b]):
+            ln = triangulate(views, out, a, sa, b, sb)
+            if ln is None:
+                continue
+            pts = ln.p + t * (ln.q - ln.p)
+            on_keys = kout.distances(pts)
+            if np.isfinite(on_keys).sum() < min(3, len(kout.frames)):  # seen in every keyframe (or three)
+                continue
+            ln.cost = float(np.nanmean(on_keys))
+            if len(kout.frames) < 3:
+                d = out.distances(pts)
+                vals = np.sort(d[np.isfinite(d)])
+                ln.cost = 0.5 * (ln.cost + (float(vals[:max(3, int(KEEP * len(vals)))].mean())
+                                            if len(vals) >= 3 else TRUNC_PX))
+            lines.append(ln)
     return lines
 
 

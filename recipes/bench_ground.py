@@ -55,8 +55,8 @@ QUERIES: dict[str, dict[str, str]] = {
 def extra_args(p) -> None:
     p.add_argument("--text-only", action="store_true", help="only the query set's retrieval (present top-1, absent "
                                                              "refusals, with and without prompts): seconds")
-    p.add_argument("--queries", choices=("all", "dev", "heldout", "heldout2"), default="all",
-                   help="--text-only: the development query set (PRESENT/ABSENT), a held-out one, or all three")
+    p.add_argument("--queries", choices=("all", *QUERY_SETS), default="all",
+                   help="--text-only: the development query set (PRESENT/ABSENT), a held-out one, or all four")
     p.add_argument("--run", type=Path, default=None, help="reuse this trained run (its dataset must be a truth dataset)")
     p.add_argument("--capture", type=Path, default=None, help="reuse this capture folder (interreal synth OUT)")
     p.add_argument("--work", type=Path, default=None, help="where capture / dataset / run go (default OUT/ground_work)")
@@ -288,8 +288,28 @@ HELDOUT2_ABSENT = ["the radiator", "the ceiling lamp", "the bathroom mirror", "t
                    "the trash bin", "the desk drawer", "the cellar door", "the window blinds",
                    "where you brush your teeth", "the thing that tells the time", "what you dry your hair with",
                    "turn off the tap", "open the laptop", "close the bathroom door"]
+# A third held-out set, written (2026-12-05, later) before the template-bias change to the rule was tried: the two
+# sets above are development sets from then on.
+HELDOUT3_PRESENT: dict[str, list[str]] = {
+    "fridge door": ["the door of the fridge", "where the milk stays cold", "open the refrigerator"],
+    "top drawer": ["the drawer at the top", "where the knives and forks are kept", "pull the top drawer open"],
+    "microwave door": ["the microwave oven", "the thing you warm up leftovers in", "close the microwave"],
+    "oven door": ["the oven's door", "where you roast a chicken", "shut the oven"],
+    "bottom drawer": ["the lower drawer", "where the saucepans are kept", "close the lowest drawer"],
+    "cupboard door": ["the wall cupboard", "where the coffee cups are kept", "open the wall cupboard"],
+    "chest lid": ["the lid of the toy box", "where the kids keep their toys", "open the lid of the chest"],
+    "wardrobe left door": ["the left one of the wardrobe doors", "where the dresses hang",
+                           "open the left door of the closet"],
+    "wardrobe right door": ["the right-hand wardrobe door", "where the jackets hang",
+                            "shut the right door of the closet"],
+    "nightstand drawer": ["the bedside drawer", "where I keep my phone charger at night", "open the bedside drawer"],
+}
+HELDOUT3_ABSENT = ["the stairs", "the bathroom sink", "the vacuum cleaner", "the printer", "the ironing board",
+                   "the kitchen window", "the cat flap", "the shoe rack", "where the car is parked",
+                   "the thing that cools the room in summer", "what you iron shirts on", "open the patio door",
+                   "switch on the kettle", "close the blinds", "the filing cabinet drawer"]
 QUERY_SETS = {"dev": (PRESENT, ABSENT), "heldout": (HELDOUT_PRESENT, HELDOUT_ABSENT),
-              "heldout2": (HELDOUT2_PRESENT, HELDOUT2_ABSENT)}
+              "heldout2": (HELDOUT2_PRESENT, HELDOUT2_ABSENT), "heldout3": (HELDOUT3_PRESENT, HELDOUT3_ABSENT)}
 
 
 def query_set_records(data: str, objects: list[str], described: bool, queries: str = "heldout") -> list[dict]:

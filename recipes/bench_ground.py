@@ -56,7 +56,7 @@ def extra_args(p) -> None:
     p.add_argument("--text-only", action="store_true", help="only the query set's retrieval (present top-1, absent "
                                                              "refusals, with and without prompts): seconds")
     p.add_argument("--queries", choices=("all", *QUERY_SETS), default="all",
-                   help="--text-only: the development query set (PRESENT/ABSENT), a held-out one, or all four")
+                   help="--text-only: the development query set (PRESENT/ABSENT), a held-out one, or all")
     p.add_argument("--run", type=Path, default=None, help="reuse this trained run (its dataset must be a truth dataset)")
     p.add_argument("--capture", type=Path, default=None, help="reuse this capture folder (interreal synth OUT)")
     p.add_argument("--work", type=Path, default=None, help="where capture / dataset / run go (default OUT/ground_work)")
@@ -308,8 +308,29 @@ HELDOUT3_ABSENT = ["the stairs", "the bathroom sink", "the vacuum cleaner", "the
                    "the kitchen window", "the cat flap", "the shoe rack", "where the car is parked",
                    "the thing that cools the room in summer", "what you iron shirts on", "open the patio door",
                    "switch on the kettle", "close the blinds", "the filing cabinet drawer"]
+# A fourth held-out set, written (2026-12-05, after the third's figures) before the owner and unknown-thing rules.
+HELDOUT4_PRESENT: dict[str, list[str]] = {
+    "fridge door": ["the fridge's door", "where the leftovers stay fresh", "close the fridge"],
+    "top drawer": ["the uppermost kitchen drawer", "the drawer with the cutlery in it", "open the top drawer"],
+    "microwave door": ["the door of the microwave", "what you make popcorn in", "shut the microwave"],
+    "oven door": ["the door of the baking oven", "where the cake gets baked", "open the oven"],
+    "bottom drawer": ["the drawer at the very bottom", "where the big pots go", "open the lowest drawer"],
+    "cupboard door": ["the cupboard on the wall", "where the tea cups are kept", "close the cupboard"],
+    "chest lid": ["the lid of the chest", "the toy box", "shut the chest"],
+    "wardrobe left door": ["the wardrobe's door on the left", "where the trousers hang",
+                           "close the left door of the wardrobe"],
+    "wardrobe right door": ["the closet door on the right", "where the winter coats hang",
+                            "open the wardrobe's right door"],
+    "nightstand drawer": ["the bedside table's drawer", "where the book I read at night is kept",
+                          "shut the nightstand drawer"],
+}
+HELDOUT4_ABSENT = ["the rubbish bin", "the wine rack", "the tumble dryer", "the hair dryer", "the kitchen island",
+                   "the doorbell", "the water heater", "the bread bin", "what you vacuum the floor with",
+                   "the thing that heats the bathroom", "open the skylight", "turn on the dishwasher",
+                   "close the shed door", "the music box lid", "the jewellery box"]
 QUERY_SETS = {"dev": (PRESENT, ABSENT), "heldout": (HELDOUT_PRESENT, HELDOUT_ABSENT),
-              "heldout2": (HELDOUT2_PRESENT, HELDOUT2_ABSENT), "heldout3": (HELDOUT3_PRESENT, HELDOUT3_ABSENT)}
+              "heldout2": (HELDOUT2_PRESENT, HELDOUT2_ABSENT), "heldout3": (HELDOUT3_PRESENT, HELDOUT3_ABSENT),
+              "heldout4": (HELDOUT4_PRESENT, HELDOUT4_ABSENT)}
 
 
 def query_set_records(data: str, objects: list[str], described: bool, queries: str = "heldout") -> list[dict]:

@@ -104,6 +104,17 @@ OWN_NEAREST = 2
 OWN_SIM = 0.5
 _WORD = re.compile(r"[a-z0-9]+")
 _STOP = {"the", "a", "an", "of", "to", "my", "this", "that", "on", "in", "with", "s"}
+# words that say which one or what it looks like, not whose it is: "the left wardrobe door", "the white door"
+MODIFIERS = frozenset(
+    "white black grey gray red green blue yellow brown beige silver wooden wood glass metal steel plastic painted big "
+    "small large little tall short long wide narrow deep shallow tiny huge left right top bottom upper lower middle "
+    "front back rear side inner outer first second third last lowest highest uppermost topmost far near hand old new "
+    "open closed".split())
+# a noun phrase's head ends where a clause or a preposition starts: "the drawer where the pots are kept"
+_CLAUSE = re.compile(r"\b(?:where|that|which|who|whose|for|with|in|on|at|by|next|near|from|under|above|below|behind|"
+                     r"beside)\b")
+# a request by what a thing does or holds, not by what it is called
+_FUNCTION = re.compile(r"^(?:the |a )?(?:where|what|which|something|somewhere|thing|place|one)\b")
 
 
 @dataclass(frozen=True)
@@ -145,6 +156,30 @@ def words(text: str) -> list[str]:
     return [w for w in _WORD.findall(text.lower().replace("_", " ").replace("'s ", " ")) if w not in _STOP]
 
 
+def singular(word: str) -> str:
+    """A plural's singular, roughly ("stairs" -> "stair", "glass" stays): both sides of a comparison alike."""
+    return word[:-1] if word.endswith("s") and not word.endswith("ss") and len(word) > 3 else word
+
+
+def thing_named(phrase: str) -> str:
+    """The thing a noun phrase names, its head noun (singular): "the drawer where the pots are kept" -> "drawer",
+    "the lid of the trunk" -> "lid"; "" for a request by function ("where the spoons go", "the thing that ...")."""
+    text = phrase.lower().strip()
+    if _FUNCTION.match(text):
+        return ""
+    ws = words(_CLAUSE.split(text, 1)[0].split(" of ")[0])
+    return singular(ws[-1]) if ws else ""
+
+
+def scene_words(names: list[str], descriptions: list[str], kinds: SceneKinds) -> frozenset[str]:
+    """Every content word (singular) of a scene's names, descriptions, the kinds its objects read as and their
+    definitions: what the scene's texts mention."""
+    texts = list(names) + list(descriptions)
+    for own in kinds.owned:
+        texts += [t for j in own for t in (HOUSEHOLD[j], KINDS[HOUSEHOLD[j]])]
+    return frozenset(singular(w) for t in texts for w in words(t))
+
+
 def reads_as(emb: np.ndarray, word_emb: np.ndarray, nearest: int = OWN_NEAREST) -> set[int]:
     """The kinds a text reads as: its `nearest` nearest kinds at OWN_SIM or closer."""
     sims = word_emb @ emb
@@ -178,8 +213,9 @@ def scene_kinds(name_emb: np.ndarray, desc_emb: np.ndarray, names: list[str], en
 
 def compound(phrase: str) -> tuple[str, str]:
     """(head, owner) of a noun phrase: "the car door" -> ("door", "car"); "the lid of the trunk" -> ("lid",
-    "trunk"); ("", "") when there is no owner ("the door", "where the coats hang" -> its last word has none)."""
-    text = phrase.lower()
+    "trunk"); ("", "") when there is no owner ("the door", "where the coats hang" -> its last word has none). A
+    clause or preposition ends the phrase: "the closet door on the right" -> ("door", "closet")."""
+    text = _CLAUSE.split(phrase.lower(), 1)[0]
     if " of " in text:
         left, right = text.rsplit(" of ", 1)
         lw, rw = words(left), words(right)
@@ -188,18 +224,22 @@ def compound(phrase: str) -> tuple[str, str]:
     return (ws[-1], " ".join(ws[:-1])) if len(ws) > 1 else ("", "")
 
 
-def foreign_owner(kinds: SceneKinds, obj: int, owner_emb: np.ndarray) -> tuple[int, float] | None:
+def foreign_owner(kinds: SceneKinds, obj: int, owner_emb: np.ndarray) -> tuple[int | None, float] | None:
     """(kind, similarity) when a query's owner ("car" of "the car door") reads as a kind that is not the object's
     owner ("fridge" -> refrigerator), nor close (OWN_SIM) to it, while the query's owner does not read as the owner's
-    definition either ("the wooden box" is a chest: "a large sturdy box with a lid"); None when it fits or reads as
-    no kind at all ("the upper drawer")."""
+    definition either ("the wooden box" is a chest: "a large sturdy box with a lid"); (None, its best similarity)
+    when the query's owner reads as no kind ("the safe door") and is not close to the object's owner's word or
+    definition either; None when it fits, or the object has no owner ("the top drawer" fits any)."""
     mine = kinds.owner[obj]
     if not mine:
         return None
     sims = kinds.word_emb @ owner_emb
     k = int(np.argmax(sims))
-    if sims[k] < OWN_SIM or k in mine:
+    if k in mine:
         return None
+    if sims[k] < OWN_SIM:
+        near = max(max(float(kinds.word_emb[o] @ owner_emb), float(kinds.gloss_emb[o] @ owner_emb)) for o in mine)
+        return None if near >= OWN_SIM else (None, near)
     if max(max(float(kinds.word_emb[k] @ kinds.word_emb[o]), float(kinds.gloss_emb[o] @ owner_emb))
            for o in mine) >= OWN_SIM:
         return None

@@ -17,8 +17,11 @@ Absent objects are refused by what else the query could mean, not by a bare simi
 no object reads as is clearly closer (by `absent_margin`) than every object and every kind the scene does hold
 ("the dishwasher" -> "dishwasher", not the top drawer at 0.40), or when the query names a part of another thing
 ("the car door": its "car" reads as a car, and no door here is a car's: `household.foreign_owner`), the query is
-not in the scene. Below `threshold` (the encoder's noise level) nothing matches either. The user gets the ranked
-candidates instead. The embeddings are cached with the run in RUN/language.npz (atomic), keyed by encoder id and
+not in the scene. Where the household list has no word for the thing ("the ironing board"), a query that names a
+thing (its head noun) none of the scene's texts mention, with no object reading close to it (OWN_SIM), is refused
+too, as is a part whose owner reads as nothing known and nothing near the object's owner ("the safe door"; "left"
+or "white" say which one, not whose). Below `threshold` (the encoder's noise level) nothing matches either. The
+user gets the ranked candidates instead. The embeddings are cached with the run in RUN/language.npz (atomic), keyed by encoder id and
 texts.
 """
 
@@ -37,12 +40,13 @@ from interreal.errors import InputError
 from livescene.errors import LiveSceneError
 
 from .encoders import TextEncoder
-from .household import HOUSEHOLD, OWN_SIM, SceneKinds, compound, foreign_owner, scene_kinds, words
+from .household import (HOUSEHOLD, MODIFIERS, OWN_SIM, SceneKinds, compound, foreign_owner, scene_kinds, scene_words,
+                        thing_named, words)
 
 CACHE_FILE = "language.npz"
 TIE_WEIGHT = 0.1  # the share of an object's name words the query repeats, times this, is added to its score
 _COMMAND = re.compile(r"^(?:please\s+)?(?:open|close|shut|pull(?: out| open)?|push(?: in)?|lift|lower|raise|"
-                      r"slide(?: out| in)?|swing(?: open)?)\s+(.+)$")
+                      r"slide(?: out| in)?|swing(?: open)?|(?:turn|switch)(?: on| off)?)\s+(.+)$")
 _STOP = {"the", "a", "an", "of", "to", "my", "this", "that", "on", "in", "with"}
 
 @dataclass
@@ -215,6 +219,8 @@ def retrieve(index: ObjectIndex, query: str, encoder: TextEncoder,
         _refuse_absent(out, kinds, qes[pick], float(score.max()), cfg.absent_margin)
         if out.reads_as is None:
             _refuse_foreign_owner(out, index, kinds, phrase, encoder)
+        if out.reads_as is None:
+            _refuse_unknown_thing(out, index, kinds, phrase, float(score.max()))
     return out
 
 
@@ -254,6 +260,7 @@ def _refuse_foreign_owner(out: Retrieval, index: ObjectIndex, kinds: SceneKinds,
     an object's name) of another thing. Refused when no object whose name ends in that part has an owner the
     query's owner could be; an object named without one ("top drawer") fits any owner."""
     head, owner = compound(phrase)
+    owner = " ".join(w for w in words(owner) if w not in MODIFIERS)  # "left" says which one, not whose
     same = [c.index for c in out.candidates if _head(index.names[c.index]) == head.rstrip("s")] if head else []
     if not owner or not same:
         return
@@ -261,9 +268,23 @@ def _refuse_foreign_owner(out: Retrieval, index: ObjectIndex, kinds: SceneKinds,
     clashes = [foreign_owner(kinds, i, owner_emb) for i in same]
     if all(c is not None for c in clashes):
         k, sim = clashes[0]
-        out.reads_as, out.reads_as_score = HOUSEHOLD[k], sim
-        out.reason = (f"its {owner!r} reads as {HOUSEHOLD[k]!r} ({sim:.3f}), and no {head} here belongs to "
-                      f"one")
+        out.reads_as, out.reads_as_score = (owner if k is None else HOUSEHOLD[k]), sim
+        out.reason = (f"its {owner!r} reads as {HOUSEHOLD[k]!r} ({sim:.3f}), and no {head} here belongs to one"
+                      if k is not None else
+                      f"no {head} here belongs to a {owner!r} (its nearest owner here {sim:.3f}, need {OWN_SIM})")
+
+
+def _refuse_unknown_thing(out: Retrieval, index: ObjectIndex, kinds: SceneKinds, phrase: str, best: float) -> None:
+    """"the ironing board", where the household list has no ironing board: the query names a thing (its head noun)
+    that none of the scene's texts mention (names, descriptions, the kinds its objects read as and their
+    definitions), and no object reads close to the query either (under OWN_SIM, the bound of "reads as"). A
+    request by function ("where the spoons go") names no thing and is left to the scores."""
+    head = thing_named(phrase)
+    if not head or best >= OWN_SIM or head in scene_words(index.names, index.descriptions, kinds):
+        return
+    out.reads_as, out.reads_as_score = head, best
+    out.reason = (f"it names a {head!r}, which no object here is or mentions, and none reads close to it (best "
+                  f"{best:.3f}, need {OWN_SIM})")
 
 
 def _head(name: str) -> str:

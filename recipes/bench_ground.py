@@ -328,9 +328,29 @@ HELDOUT4_ABSENT = ["the rubbish bin", "the wine rack", "the tumble dryer", "the 
                    "the doorbell", "the water heater", "the bread bin", "what you vacuum the floor with",
                    "the thing that heats the bathroom", "open the skylight", "turn on the dishwasher",
                    "close the shed door", "the music box lid", "the jewellery box"]
+# A fifth held-out set, written (2026-12-05, after the fourth's figures) before the head-phrase rule.
+HELDOUT5_PRESENT: dict[str, list[str]] = {
+    "fridge door": ["the refrigerator", "where the cheese is kept cold", "shut the fridge door"],
+    "top drawer": ["the top kitchen drawer", "where the teaspoons are kept", "close the upper drawer"],
+    "microwave door": ["the microwave", "what warms up a bowl of porridge", "open the microwave's door"],
+    "oven door": ["the door of the cooker's oven", "where the lasagne bakes", "shut the oven door"],
+    "bottom drawer": ["the bottom one of the kitchen drawers", "where the baking trays go",
+                      "pull the bottom drawer out"],
+    "cupboard door": ["the cupboard above the counter", "where the wine glasses are kept", "open the cupboard door"],
+    "chest lid": ["the chest", "where the board games are stored", "raise the chest lid"],
+    "wardrobe left door": ["the left wardrobe door", "where the suits hang", "open the left one of the wardrobe doors"],
+    "wardrobe right door": ["the wardrobe's right-hand door", "where the raincoats hang",
+                            "close the wardrobe door on the right"],
+    "nightstand drawer": ["the bedside cabinet's drawer", "where the sleeping pills are kept",
+                          "open the drawer of the nightstand"],
+}
+HELDOUT5_ABSENT = ["the ceiling", "the floor lamp", "the extractor hood", "the shoe cupboard door", "the letterbox",
+                   "the bathroom scale", "the smoke alarm", "the coat hook", "the spice rack", "the towel rail",
+                   "where the bicycles are kept", "the thing that dries the laundry", "open the back door",
+                   "close the freezer", "the dog basket"]
 QUERY_SETS = {"dev": (PRESENT, ABSENT), "heldout": (HELDOUT_PRESENT, HELDOUT_ABSENT),
               "heldout2": (HELDOUT2_PRESENT, HELDOUT2_ABSENT), "heldout3": (HELDOUT3_PRESENT, HELDOUT3_ABSENT),
-              "heldout4": (HELDOUT4_PRESENT, HELDOUT4_ABSENT)}
+              "heldout4": (HELDOUT4_PRESENT, HELDOUT4_ABSENT), "heldout5": (HELDOUT5_PRESENT, HELDOUT5_ABSENT)}
 
 
 def query_set_records(data: str, objects: list[str], described: bool, queries: str = "heldout") -> list[dict]:

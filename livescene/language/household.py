@@ -113,6 +113,7 @@ MODIFIERS = frozenset(
 # a noun phrase's head ends where a clause or a preposition starts: "the drawer where the pots are kept"
 _CLAUSE = re.compile(r"\b(?:where|that|which|who|whose|for|with|in|on|at|by|next|near|from|under|above|below|behind|"
                      r"beside)\b")
+_PRONOUNS = frozenset({"one", "ones", "thing", "things", "stuff", "something", "it"})  # "the left one of ..."
 # a request by what a thing does or holds, not by what it is called
 _FUNCTION = re.compile(r"^(?:the |a )?(?:where|what|which|something|somewhere|thing|place|one)\b")
 
@@ -168,7 +169,9 @@ def thing_named(phrase: str) -> str:
     if _FUNCTION.match(text):
         return ""
     ws = words(_CLAUSE.split(text, 1)[0].split(" of ")[0])
-    return singular(ws[-1]) if ws else ""
+    while ws and ws[-1] in MODIFIERS:  # "pull the top drawer open"
+        ws.pop()
+    return singular(ws[-1]) if ws and ws[-1] not in _PRONOUNS else ""
 
 
 def scene_words(names: list[str], descriptions: list[str], kinds: SceneKinds) -> frozenset[str]:

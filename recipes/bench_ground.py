@@ -348,9 +348,29 @@ HELDOUT5_ABSENT = ["the ceiling", "the floor lamp", "the extractor hood", "the s
                    "the bathroom scale", "the smoke alarm", "the coat hook", "the spice rack", "the towel rail",
                    "where the bicycles are kept", "the thing that dries the laundry", "open the back door",
                    "close the freezer", "the dog basket"]
+# A sixth held-out set, written (2026-12-05, after the fifth's figures) before the held-things rule.
+HELDOUT6_PRESENT: dict[str, list[str]] = {
+    "fridge door": ["the fridge door on the left", "where the orange juice is kept", "open the fridge"],
+    "top drawer": ["the highest drawer", "where the forks and spoons are kept", "shut the top drawer"],
+    "microwave door": ["the microwave's front", "the thing that defrosts frozen bread", "close the microwave door"],
+    "oven door": ["the oven's glass door", "where the roast potatoes are cooked", "open the door of the oven"],
+    "bottom drawer": ["the lowest kitchen drawer", "where the frying pans and woks are kept",
+                      "shut the bottom drawer"],
+    "cupboard door": ["the wall cupboard's door", "where the drinking glasses are kept", "open the wall cupboard door"],
+    "chest lid": ["the chest's lid", "where the stuffed animals are kept", "close the lid of the chest"],
+    "wardrobe left door": ["the left door of the wardrobe", "where the blouses hang", "shut the wardrobe's left door"],
+    "wardrobe right door": ["the right wardrobe door", "where the overcoats hang", "open the wardrobe's right door"],
+    "nightstand drawer": ["the nightstand's drawer", "where the alarm clock batteries are kept",
+                          "shut the drawer of the bedside table"],
+}
+HELDOUT6_ABSENT = ["the chandelier", "the clothes horse", "the fruit bowl", "the kitchen scales", "the ottoman",
+                   "the bunk bed", "the hot tub", "where the dirty laundry goes", "where the wine is kept",
+                   "where the garden tools are kept", "what you boil eggs in", "open the cat door", "close the shutters",
+                   "the fuse box", "the dog kennel"]
 QUERY_SETS = {"dev": (PRESENT, ABSENT), "heldout": (HELDOUT_PRESENT, HELDOUT_ABSENT),
               "heldout2": (HELDOUT2_PRESENT, HELDOUT2_ABSENT), "heldout3": (HELDOUT3_PRESENT, HELDOUT3_ABSENT),
-              "heldout4": (HELDOUT4_PRESENT, HELDOUT4_ABSENT), "heldout5": (HELDOUT5_PRESENT, HELDOUT5_ABSENT)}
+              "heldout4": (HELDOUT4_PRESENT, HELDOUT4_ABSENT), "heldout5": (HELDOUT5_PRESENT, HELDOUT5_ABSENT),
+              "heldout6": (HELDOUT6_PRESENT, HELDOUT6_ABSENT)}
 
 
 def query_set_records(data: str, objects: list[str], described: bool, queries: str = "heldout") -> list[dict]:

@@ -331,3 +331,23 @@ def test_things_the_household_list_lacks_and_unknown_owners_are_refused(minilm):
         require_match(retrieve(index, "the umbrella stand", minilm))
     with pytest.raises(LiveSceneError, match="no door here belongs to a 'attic'"):
         require_match(retrieve(index, "the attic door", minilm))
+
+
+def test_a_request_by_place_is_compared_by_what_it_holds(minilm):
+    """"where the glasses are kept" went to the chest lid, whose description shares the sentence's frame ("the
+    storage chest where the toys are"); compared by what it holds ("glasses") with what each description holds
+    ("cups", "toys", "cutlery"), it finds the cupboard. Names alone are left as they were."""
+    from interreal.synth import SynthConfig, build_scene
+    from livescene.language.household import held_things
+
+    assert held_things("where the spoons go") == "spoons" and held_things("the door of the oven") == ""
+    assert held_things("the deep bottom drawer of the wooden cabinet, for pots and pans") == "pots and pans"
+    assert held_things("where I keep my phone charger at night") == "phone charger"
+    scene = build_scene(SynthConfig(parts=10, frames=2, width=32, height=24))
+    index = ObjectIndex.build(scene.object_names, scene.descriptions, minilm)
+    for query, expected in (("where the glasses are kept", "cupboard door"), ("where the jackets hang",
+                            "wardrobe right door"), ("where the frying pans are kept", "bottom drawer"),
+                            ("the thing that keeps food cold", "fridge door")):
+        res = retrieve(index, query, minilm)
+        assert res.ok and res.best.name == expected, (query, res.table())
+    assert retrieve(index, "where the glasses are kept", minilm).best.matched == "what its description holds"

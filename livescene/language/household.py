@@ -113,6 +113,10 @@ MODIFIERS = frozenset(
 # a noun phrase's head ends where a clause or a preposition starts: "the drawer where the pots are kept"
 _CLAUSE = re.compile(r"\b(?:where|that|which|who|whose|for|with|in|on|at|by|next|near|from|under|above|below|behind|"
                      r"beside)\b")
+_HOLDS = re.compile(r"\b(?:where|for|in which|on which)\b")
+_KEEPING = frozenset("is are be go goes keep keeps kept store stores stored put away hang hangs live lives belong "
+                     "belongs get gets stay stays sit sits usually normally i you we they my your our their at night "
+                     "there can should".split())
 _PRONOUNS = frozenset({"one", "ones", "thing", "things", "stuff", "something", "it"})  # "the left one of ..."
 # a request by what a thing does or holds, not by what it is called
 _FUNCTION = re.compile(r"^(?:the |a )?(?:where|what|which|something|somewhere|thing|place|one)\b")
@@ -148,7 +152,8 @@ def kind_embeddings(encoder: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 @lru_cache(maxsize=256)
-def _encode_one(encoder: Any, text: str) -> np.ndarray:
+def encode_one(encoder: Any, text: str) -> np.ndarray:
+    """One text's embedding, cached (words and phrases recur from query to query)."""
     return encoder.encode([text])[0]
 
 
@@ -172,6 +177,14 @@ def thing_named(phrase: str) -> str:
     while ws and ws[-1] in MODIFIERS:  # "pull the top drawer open"
         ws.pop()
     return singular(ws[-1]) if ws and ws[-1] not in _PRONOUNS else ""
+
+
+def held_things(text: str) -> str:
+    """What a place holds, in words: "where the spoons go" -> "spoons"; "the deep drawer, for pots and pans" ->
+    "pots pans"; "" when the text names no place that holds something. Its content words after the first "where",
+    "for", "in which" or "on which", less the verbs and pronouns of keeping ("are kept", "I keep", "hang")."""
+    m = _HOLDS.search(text.lower())
+    return " ".join(w for w in words(text.lower()[m.end():]) if w not in _KEEPING) if m else ""
 
 
 def scene_words(names: list[str], descriptions: list[str], kinds: SceneKinds) -> frozenset[str]:
@@ -199,7 +212,7 @@ def scene_kinds(name_emb: np.ndarray, desc_emb: np.ndarray, names: list[str], en
             own |= reads_as(desc_emb[i], word_emb)
         whose: set[int] = set()
         for w in words(name)[:-1]:  # a word names one thing: "nightstand" is a nightstand, not a bed
-            whose |= reads_as(_encode_one(encoder, w), word_emb, nearest=1)
+            whose |= reads_as(encode_one(encoder, w), word_emb, nearest=1)
         owned.append(own | whose)
         owner.append(frozenset(whose))
     here = frozenset().union(*owned)

@@ -21,8 +21,9 @@ not in the scene. Where the household list has no word for the thing ("the ironi
 thing (its head noun) none of the scene's texts mention, with no object reading close to it (OWN_SIM), is refused
 too, as is a part whose owner reads as nothing known and nothing near the object's owner ("the safe door"; "left"
 or "white" say which one, not whose). Below `threshold` (the encoder's noise level) nothing matches either. The
-user gets the ranked candidates instead. The embeddings are cached with the run in RUN/language.npz (atomic), keyed by encoder id and
-texts.
+user gets the ranked candidates instead. A request by place ("where the glasses are kept") is also compared by
+what it holds with what each description holds (`household.held_things`). The embeddings are cached with the run
+in RUN/language.npz (atomic), keyed by encoder id and texts.
 """
 
 from __future__ import annotations
@@ -40,8 +41,8 @@ from interreal.errors import InputError
 from livescene.errors import LiveSceneError
 
 from .encoders import TextEncoder
-from .household import (HOUSEHOLD, MODIFIERS, OWN_SIM, SceneKinds, compound, foreign_owner, scene_kinds, scene_words,
-                        thing_named, words)
+from .household import (HOUSEHOLD, MODIFIERS, OWN_SIM, SceneKinds, compound, encode_one, foreign_owner, held_things,
+                        scene_kinds, scene_words, thing_named, words)
 
 CACHE_FILE = "language.npz"
 TIE_WEIGHT = 0.1  # the share of an object's name words the query repeats, times this, is added to its score
@@ -204,7 +205,7 @@ def retrieve(index: ObjectIndex, query: str, encoder: TextEncoder,
     qes = encoder.encode([q] if phrase == q else [q, phrase])
     pairs = [_object_scores(index, kinds, qe) for qe in qes]
     pick = int(np.argmax([p[0].max() for p in pairs]))
-    score, matched = pairs[pick]
+    score, matched = _with_held_things(index, q, encoder, *pairs[pick])
     ranked = score + TIE_WEIGHT * np.array([name_overlap(n, q) for n in index.names])
     logits = score / max(cfg.temperature, 1e-6)
     prob = np.exp(logits - logits.max())
@@ -238,6 +239,25 @@ def _object_scores(index: ObjectIndex, kinds: SceneKinds, query_emb: np.ndarray,
                 score[i], matched[i] = by_word[j], f"kind {HOUSEHOLD[j]!r}"
             if by_gloss[j] > score[i] + 1e-6:
                 score[i], matched[i] = by_gloss[j], f"definition of {HOUSEHOLD[j]!r}"
+    return score, matched
+
+
+def _with_held_things(index: ObjectIndex, query: str, encoder: TextEncoder, score: np.ndarray, matched: list[str]
+                      ) -> tuple[np.ndarray, list[str]]:
+    """A request by place ("where the glasses are kept") also compared by what it holds with what each object's
+    description says it holds ("glasses" against "cups", "toys", "cutlery"): a whole sentence's similarity is
+    carried by its frame ("where the ... are"), so the description that shares the frame wins ("where the toys
+    are") over the one that holds the things asked for."""
+    asked = held_things(query) if query.lower().startswith("where") or " where " in query.lower() else ""
+    if not asked:
+        return score, matched
+    score, matched = score.copy(), list(matched)
+    asked_emb = encode_one(encoder, asked)
+    for i, desc in enumerate(index.descriptions):
+        held = held_things(desc) if desc else ""
+        sim = float(encode_one(encoder, held) @ asked_emb) if held else -1.0
+        if sim > score[i]:
+            score[i], matched[i] = sim, "what its description holds"
     return score, matched
 
 

@@ -367,10 +367,29 @@ HELDOUT6_ABSENT = ["the chandelier", "the clothes horse", "the fruit bowl", "the
                    "the bunk bed", "the hot tub", "where the dirty laundry goes", "where the wine is kept",
                    "where the garden tools are kept", "what you boil eggs in", "open the cat door", "close the shutters",
                    "the fuse box", "the dog kennel"]
+# A seventh held-out set, written (2026-12-05, after the sixth's figures) before the head-word rule; more synonyms.
+HELDOUT7_PRESENT: dict[str, list[str]] = {
+    "fridge door": ["the cooler", "where the salad is kept fresh", "close the door of the fridge"],
+    "top drawer": ["the silverware drawer", "where the cake forks are kept", "open the uppermost drawer"],
+    "microwave door": ["the microwave oven's door", "what reheats coffee", "open the microwave oven"],
+    "oven door": ["the stove's oven", "where the bread is baked", "close the oven's door"],
+    "bottom drawer": ["the pot drawer", "where the colander is kept", "shut the lowest drawer"],
+    "cupboard door": ["the kitchen cabinet on the wall", "where the saucers are kept", "shut the wall cupboard"],
+    "chest lid": ["the trunk lid", "where the old photo albums are stored", "open the toy chest"],
+    "wardrobe left door": ["the armoire's left door", "where the skirts hang", "open the left-hand wardrobe door"],
+    "wardrobe right door": ["the armoire's right door", "where the rain jackets hang",
+                            "close the right-hand wardrobe door"],
+    "nightstand drawer": ["the night stand drawer", "where the reading lamp's spare bulb is kept",
+                          "open the bedside drawer"],
+}
+HELDOUT7_ABSENT = ["the umbrella stand", "the plate rack", "the door mat", "the key hook", "the cutting board",
+                   "the rolling pin", "the laundry basket", "the picture frame", "where the brooms are kept",
+                   "the thing that purifies the air", "open the hatch", "close the skylight", "the wine cooler",
+                   "the cat tree", "the mail slot"]
 QUERY_SETS = {"dev": (PRESENT, ABSENT), "heldout": (HELDOUT_PRESENT, HELDOUT_ABSENT),
               "heldout2": (HELDOUT2_PRESENT, HELDOUT2_ABSENT), "heldout3": (HELDOUT3_PRESENT, HELDOUT3_ABSENT),
               "heldout4": (HELDOUT4_PRESENT, HELDOUT4_ABSENT), "heldout5": (HELDOUT5_PRESENT, HELDOUT5_ABSENT),
-              "heldout6": (HELDOUT6_PRESENT, HELDOUT6_ABSENT)}
+              "heldout6": (HELDOUT6_PRESENT, HELDOUT6_ABSENT), "heldout7": (HELDOUT7_PRESENT, HELDOUT7_ABSENT)}
 
 
 def query_set_records(data: str, objects: list[str], described: bool, queries: str = "heldout") -> list[dict]:

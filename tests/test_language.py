@@ -326,6 +326,10 @@ def test_things_the_household_list_lacks_and_unknown_owners_are_refused(minilm):
                                     ("the drawer with the knives in it", "top drawer")):
                 res = retrieve(index, query, minilm)
                 assert res.ok and res.best.name == expected, (query, res.table(), res.reason)
+    index = ObjectIndex.build(scene.object_names, scene.descriptions, minilm)
+    for query in ("the coat hook", "the kitchen scales"):  # the wardrobe's coats, the kitchen carry the query
+        res = retrieve(index, query, minilm)
+        assert not res.ok and res.reads_as in ("hook", "scale"), (query, res.table(), res.reason)
     index = ObjectIndex.build(scene.object_names, None, minilm)
     with pytest.raises(LiveSceneError, match="names a 'stand', which no object here is or mentions"):
         require_match(retrieve(index, "the umbrella stand", minilm))

@@ -42,7 +42,7 @@ from livescene.errors import LiveSceneError
 
 from .encoders import TextEncoder
 from .household import (HOUSEHOLD, MODIFIERS, OWN_SIM, SceneKinds, compound, encode_one, foreign_owner, held_things,
-                        scene_kinds, scene_words, thing_named, words)
+                        reads_as, scene_kinds, scene_words, thing_named, words)
 
 CACHE_FILE = "language.npz"
 TIE_WEIGHT = 0.1  # the share of an object's name words the query repeats, times this, is added to its score
@@ -221,7 +221,7 @@ def retrieve(index: ObjectIndex, query: str, encoder: TextEncoder,
         if out.reads_as is None:
             _refuse_foreign_owner(out, index, kinds, phrase, encoder)
         if out.reads_as is None:
-            _refuse_unknown_thing(out, index, kinds, phrase, float(score.max()))
+            _refuse_unknown_thing(out, index, kinds, phrase, float(score.max()), encoder)
     return out
 
 
@@ -294,17 +294,28 @@ def _refuse_foreign_owner(out: Retrieval, index: ObjectIndex, kinds: SceneKinds,
                       f"no {head} here belongs to a {owner!r} (its nearest owner here {sim:.3f}, need {OWN_SIM})")
 
 
-def _refuse_unknown_thing(out: Retrieval, index: ObjectIndex, kinds: SceneKinds, phrase: str, best: float) -> None:
+def _refuse_unknown_thing(out: Retrieval, index: ObjectIndex, kinds: SceneKinds, phrase: str, best: float,
+                          encoder: TextEncoder) -> None:
     """"the ironing board", where the household list has no ironing board: the query names a thing (its head noun)
     that none of the scene's texts mention (names, descriptions, the kinds its objects read as and their
-    definitions), and no object reads close to the query either (under OWN_SIM, the bound of "reads as"). A
-    request by function ("where the spoons go") names no thing and is left to the scores."""
+    definitions), and neither the query nor its head word alone reads close (OWN_SIM, the bound of "reads as") to
+    an object ("the coat hook": the wardrobe's coats carry the query, not the hook), unless it names the part of a
+    thing an object belongs to. A request by function ("where the spoons go") names no thing and is left to the
+    scores."""
     head = thing_named(phrase)
-    if not head or best >= OWN_SIM or head in scene_words(index.names, index.descriptions, kinds):
+    if not head or head in scene_words(index.names, index.descriptions, kinds):
         return
-    out.reads_as, out.reads_as_score = head, best
+    owner = " ".join(w for w in words(compound(phrase)[1]) if w not in MODIFIERS)
+    if owner and reads_as(encode_one(encoder, owner), kinds.word_emb, nearest=1) & set().union(*kinds.owner):
+        return  # "the display of the laptop": a part, by another word, of a thing an object belongs to
+    own = sorted({j for o in kinds.owned for j in o})
+    names = np.concatenate([index.name_emb, kinds.word_emb[own]]) if own else index.name_emb
+    alone = float((names @ encode_one(encoder, head)).max())
+    if best >= OWN_SIM and alone >= OWN_SIM:
+        return
+    out.reads_as, out.reads_as_score = head, min(best, alone)
     out.reason = (f"it names a {head!r}, which no object here is or mentions, and none reads close to it (best "
-                  f"{best:.3f}, need {OWN_SIM})")
+                  f"{min(best, alone):.3f}, need {OWN_SIM})")
 
 
 def _head(name: str) -> str:

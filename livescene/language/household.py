@@ -181,7 +181,7 @@ def thing_named(phrase: str) -> str:
 
 def held_things(text: str) -> str:
     """What a place holds, in words: "where the spoons go" -> "spoons"; "the deep drawer, for pots and pans" ->
-    "pots pans"; "" when the text names no place that holds something. Its content words after the first "where",
+    "pots and pans"; "" when the text names no place that holds something. Its content words after the first "where",
     "for", "in which" or "on which", less the verbs and pronouns of keeping ("are kept", "I keep", "hang")."""
     m = _HOLDS.search(text.lower())
     return " ".join(w for w in words(text.lower()[m.end():]) if w not in _KEEPING) if m else ""
@@ -238,6 +238,12 @@ def compound(phrase: str) -> tuple[str, str]:
         return (lw[-1], " ".join(rw)) if lw and rw else ("", "")
     ws = words(text)
     return (ws[-1], " ".join(ws[:-1])) if len(ws) > 1 else ("", "")
+
+
+def owner_words(phrase: str) -> str:
+    """Whose part a phrase names, less the words that say which one: "the wardrobe's left door" -> "wardrobe",
+    "the left door" -> "" (`compound`'s owner, `MODIFIERS` out)."""
+    return " ".join(w for w in words(compound(phrase)[1]) if w not in MODIFIERS)
 
 
 def foreign_owner(kinds: SceneKinds, obj: int, owner_emb: np.ndarray) -> tuple[int | None, float] | None:

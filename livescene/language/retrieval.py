@@ -18,8 +18,8 @@ no object reads as is clearly closer (by `absent_margin`) than every object and 
 ("the dishwasher" -> "dishwasher", not the top drawer at 0.40), or when the query names a part of another thing
 ("the car door": its "car" reads as a car, and no door here is a car's: `household.foreign_owner`), the query is
 not in the scene. Where the household list has no word for the thing ("the ironing board"), a query that names a
-thing (its head noun) none of the scene's texts mention, with no object reading close to it (OWN_SIM), is refused
-too, as is a part whose owner reads as nothing known and nothing near the object's owner ("the safe door"; "left"
+thing (its head noun) none of the scene's texts mention, with no object reading close (OWN_SIM) to it or to its head
+word alone, is refused too, as is a part whose owner reads as nothing known and nothing near the object's owner ("the safe door"; "left"
 or "white" say which one, not whose). Below `threshold` (the encoder's noise level) nothing matches either. The
 user gets the ranked candidates instead. A request by place ("where the glasses are kept") is also compared by
 what it holds with what each description holds (`household.held_things`). The embeddings are cached with the run
@@ -41,7 +41,7 @@ from interreal.errors import InputError
 from livescene.errors import LiveSceneError
 
 from .encoders import TextEncoder
-from .household import (HOUSEHOLD, MODIFIERS, OWN_SIM, SceneKinds, compound, encode_one, foreign_owner, held_things,
+from .household import (HOUSEHOLD, OWN_SIM, SceneKinds, compound, encode_one, foreign_owner, held_things, owner_words,
                         reads_as, scene_kinds, scene_words, thing_named, words)
 
 CACHE_FILE = "language.npz"
@@ -80,7 +80,8 @@ class Retrieval:
     query: str
     candidates: list[Candidate]  # best first
     threshold: float
-    reads_as: str | None = None  # a household thing the query reads closer to than any object here: absent
+    reads_as: str | None = None  # what the query names instead of an object here (a household thing, an unknown
+    #                              thing's head noun, an owner no object has): absent
     reads_as_score: float = 0.0
     reason: str = ""  # why an absent query was refused, for the message
     evidence: float | None = None  # what `threshold` judges when not the best's score (see `retrieve`)
@@ -279,8 +280,7 @@ def _refuse_foreign_owner(out: Retrieval, index: ObjectIndex, kinds: SceneKinds,
     """"the car door" where the doors here are a fridge's and an oven's: the query names a part (the last word of
     an object's name) of another thing. Refused when no object whose name ends in that part has an owner the
     query's owner could be; an object named without one ("top drawer") fits any owner."""
-    head, owner = compound(phrase)
-    owner = " ".join(w for w in words(owner) if w not in MODIFIERS)  # "left" says which one, not whose
+    head, owner = compound(phrase)[0], owner_words(phrase)  # "left" says which one, not whose
     same = [c.index for c in out.candidates if _head(index.names[c.index]) == head.rstrip("s")] if head else []
     if not owner or not same:
         return
@@ -305,7 +305,7 @@ def _refuse_unknown_thing(out: Retrieval, index: ObjectIndex, kinds: SceneKinds,
     head = thing_named(phrase)
     if not head or head in scene_words(index.names, index.descriptions, kinds):
         return
-    owner = " ".join(w for w in words(compound(phrase)[1]) if w not in MODIFIERS)
+    owner = owner_words(phrase)
     if owner and reads_as(encode_one(encoder, owner), kinds.word_emb, nearest=1) & set().union(*kinds.owner):
         return  # "the display of the laptop": a part, by another word, of a thing an object belongs to
     own = sorted({j for o in kinds.owned for j in o})

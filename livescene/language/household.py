@@ -113,6 +113,7 @@ MODIFIERS = frozenset(
 # a noun phrase's head ends where a clause or a preposition starts: "the drawer where the pots are kept"
 _CLAUSE = re.compile(r"\b(?:where|that|which|who|whose|for|with|in|on|at|by|next|near|from|under|above|below|behind|"
                      r"beside)\b")
+_HYPHENATED = re.compile(r"\b[a-z0-9]+(?:-[a-z0-9]+)+\b")  # "drawer-less", "left-hand", "built-in": says what kind
 _HOLDS = re.compile(r"\b(?:where|for|in which|on which)\b")
 _KEEPING = frozenset("is are be go goes keep keeps kept store stores stored put away hang hangs live lives belong "
                      "belongs get gets stay stays sit sits usually normally i you we they my your our their at night "
@@ -173,7 +174,7 @@ def thing_named(phrase: str) -> str:
     text = phrase.lower().strip()
     if _FUNCTION.match(text):
         return ""
-    ws = words(_CLAUSE.split(text, 1)[0].split(" of ")[0])
+    ws = words(_HYPHENATED.sub(" ", _CLAUSE.split(text, 1)[0].split(" of ")[0]))
     while ws and ws[-1] in MODIFIERS:  # "pull the top drawer open"
         ws.pop()
     return singular(ws[-1]) if ws and ws[-1] not in _PRONOUNS else ""
@@ -230,8 +231,9 @@ def scene_kinds(name_emb: np.ndarray, desc_emb: np.ndarray, names: list[str], en
 def compound(phrase: str) -> tuple[str, str]:
     """(head, owner) of a noun phrase: "the car door" -> ("door", "car"); "the lid of the trunk" -> ("lid",
     "trunk"); ("", "") when there is no owner ("the door", "where the coats hang" -> its last word has none). A
-    clause or preposition ends the phrase: "the closet door on the right" -> ("door", "closet")."""
-    text = _CLAUSE.split(phrase.lower(), 1)[0]
+    clause or preposition ends the phrase: "the closet door on the right" -> ("door", "closet"); a hyphenated word
+    says what kind, not whose ("the drawer-less door")."""
+    text = _HYPHENATED.sub(" ", _CLAUSE.split(phrase.lower(), 1)[0])
     if " of " in text:
         left, right = text.rsplit(" of ", 1)
         lw, rw = words(left), words(right)

@@ -36,6 +36,8 @@ from .silhouette import Silhouettes, Views, views_of
 SIDE = 480            # outlines and final silhouettes are compared at most this large (long side) ...
 SEARCH_SIDE = 240     # ... the leaf's size is searched on silhouettes this large
 TRUNC_PX = 12.0       # an outline further than this (work-size px) from a projected point counts as this far
+ALONG = np.linspace(0.15, 0.85, 12)[:, None]  # where a candidate line is sampled: its ends may be corners shared
+#                                                with edges that move
 KEEP = 0.6            # the share of frames (best first) a candidate line is judged on: masks fail, hands cover
 SEGMENT_SHARE = 0.1   # straight stretches of an outline at least this share of the image diagonal
 MAX_LINE_PX = 3.0     # a hinge line further than this (work size, mean over the frames kept) from the outlines: none
@@ -174,12 +176,11 @@ def static_line(out: Outlines, views: Views, key: int, seg: np.ndarray, keys: li
     and of the best `KEEP` of the frames: its two end depths searched on a grid, then refined. Used where a single
     keyframe shows the part (`keyframe_lines` needs two)."""
     centre, rays = _rays(views, out, key, seg)
-    t = np.linspace(0.15, 0.85, 12)[:, None]  # its ends may be corners shared with edges that move
     on_key = np.array([i in keys and i != key for i in out.frames])
 
     def cost(x: np.ndarray) -> float:
         p, q = centre + np.exp(x[0]) * rays[0], centre + np.exp(x[1]) * rays[1]
-        d = out.distances(p + t * (q - p))
+        d = out.distances(p + ALONG * (q - p))
         vals = d[np.isfinite(d)]
         if len(vals) < 3:
             return TRUNC_PX
@@ -227,14 +228,13 @@ def keyframe_lines(views: Views, out: Outlines, keys: list[int], kout: Outlines)
     hinge side, where a plain door meets its plain body, propagated outlines stray, and lines lifted with them do."""
     h, w = views.masks[keys[0]].shape
     segs = {k: segments(views.masks[k], SEGMENT_SHARE * float(np.hypot(h, w))) for k in keys}
-    t = np.linspace(0.15, 0.85, 12)[:, None]
     lines = []
     for a, b in permutations(keys, 2):
         for sa, sb in product(segs[a], segs[b]):
             ln = triangulate(views, out, a, sa, b, sb)
             if ln is None:
                 continue
-            pts = ln.p + t * (ln.q - ln.p)
+            pts = ln.p + ALONG * (ln.q - ln.p)
             on_keys = kout.distances(pts)
             if np.isfinite(on_keys).sum() < min(3, len(kout.frames)):  # seen in every keyframe (or three)
                 continue

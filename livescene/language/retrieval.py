@@ -308,8 +308,8 @@ def _refuse_unknown_thing(out: Retrieval, index: ObjectIndex, kinds: SceneKinds,
     owner = owner_words(phrase)
     if owner and reads_as(encode_one(encoder, owner), kinds.word_emb, nearest=1) & set().union(*kinds.owner):
         return  # "the display of the laptop": a part, by another word, of a thing an object belongs to
-    own = sorted({j for o in kinds.owned for j in o})
-    names = np.concatenate([index.name_emb, kinds.word_emb[own]]) if own else index.name_emb
+    here = sorted(kinds.here)  # every kind some object reads as
+    names = np.concatenate([index.name_emb, kinds.word_emb[here]]) if here else index.name_emb
     alone = float((names @ encode_one(encoder, head)).max())
     if best >= OWN_SIM and alone >= OWN_SIM:
         return

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from benchlib import bench_args, print_table, write_results
 
-ROUTE_NAMES = ("sfm", "pnp", "silhouette", "edge", "stage")
+ROUTE_NAMES = ("sfm", "pnp", "silhouette", "edge", "prism", "stage")
 
 
 HARD = {"furniture": "plain", "exposure_drift": 0.2, "noise": 3.0, "occluder": 0.3, "arm": True}  # --hard: as real captures are

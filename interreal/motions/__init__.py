@@ -4,6 +4,8 @@ One module per route, one for the decision they share, and the stage that runs t
 - `stage`: the command (`estimate_motions`), the part's masks, its own SfM (the first route), the routes in turn;
 - `pnp`: the part triangulated where it rests with the known cameras, then located in every frame by PnP;
 - `silhouette`: a part too plain for both: its flat front from its masks, the motion whose silhouettes fit them;
+- `edge`: a plain door or lid cut by the image border, hinged on the one edge of its outline that stays put;
+- `prism`: a plain drawer: its front at rest on such an edge, pulled out along its normal, judged against a door;
 - `fit`: poses or displacements -> a hinge or a slide decided by the geometry, every frame's state, the labels only
   orienting it (the ones that disagree flagged).
 A new route is a module here that returns what `fit.articulate` reads.

@@ -326,13 +326,15 @@ def _viterbi(curves: np.ndarray, jump: np.ndarray, still: np.ndarray) -> tuple[n
     return path, float(score.max())
 
 
-def anchored_path(curves: np.ndarray, angles: np.ndarray, still: np.ndarray, ends: list[np.ndarray]) -> np.ndarray:
+def anchored_path(curves: np.ndarray, angles: np.ndarray, still: np.ndarray, ends: list[np.ndarray],
+                  jump: np.ndarray | None = None) -> np.ndarray:
     """`smooth_path` where the frames of each of `ends` (bool (F,) each: the frames labelled closed, those labelled
     fully open) share one angle, give or take what a turn between neighbours at rest costs: every grid angle tried
     as the first end's, the best total kept, then the next end's with it. Why: the mirror image turns with the
     camera, so it cannot sit at one angle in frames at one end filmed from different places, however far apart in
-    time (a door closed at the start, in the middle and at the end)."""
-    jump = SMOOTH * _turns(angles)
+    time (a door closed at the start, in the middle and at the end). jump (A, A): what a move between neighbours
+    costs (default: `SMOOTH` per degree turned; a slide passes its own)."""
+    jump = SMOOTH * _turns(angles) if jump is None else jump
     away = STILL * jump  # (A, A): from the shared angle (rows)
     held = curves.copy()
     path = _viterbi(curves, jump, still)[0]
@@ -453,6 +455,30 @@ def judge(fig: dict[str, Any], sil: Silhouettes, out: Outlines, leaf: Leaf, size
     return None
 
 
+def label_ends(shown: list[int], states: np.ndarray | None, known: np.ndarray | None
+               ) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(still (F,), [closed (F,), opened (F,)]) over `shown` from the labels: the frames resting at one labelled
+    state with the frame before, those labelled at the lowest state (where it rests closed) and at the highest."""
+    n = len(shown)
+    still, closed, opened = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
+    if states is not None and known is not None and n:
+        at = np.array(shown)
+        still[1:] = known[at[1:]] & known[at[:-1]] & (np.abs(states[at[1:]] - states[at[:-1]]) <= SAME_STATE)
+        if known[at].any():
+            closed = known[at] & (states[at] <= states[at][known[at]].min() + SAME_STATE)
+            opened = known[at] & (states[at] >= states[at][known[at]].max() - SAME_STATE) & ~closed
+    return still, [closed, opened]
+
+
+def trusted_frames(views: Views, keys: list[int], min_pixels: int, confidence: np.ndarray | None) -> list[int]:
+    """The frames whose mask shows the part (`min_pixels`) and that the masks stage trusts (`MIN_CONFIDENCE`;
+    the keyframes always)."""
+    n = len(views.masks)
+    trusted = np.ones(n, bool) if confidence is None else np.asarray(confidence) >= MIN_CONFIDENCE
+    trusted[[k for k in keys if k < n]] = True
+    return [i for i, m in enumerate(views.masks) if trusted[i] and int(m.sum()) >= min_pixels]
+
+
 def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.ndarray | None = None,
                 known: np.ndarray | None = None) -> tuple[Fit | None, dict[str, Any]]:
     """The hinge about the best static outline line, as a `Fit` over `frames` (the angle per frame), or None and
@@ -472,13 +498,7 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
         return None, fig
     coarse, sil = Silhouettes(views, frames, SEARCH_SIDE), Silhouettes(views, frames)
     shown = [i for i in frames if i in sil.crop]
-    still, closed, opened = np.zeros(len(shown), bool), np.zeros(len(shown), bool), np.zeros(len(shown), bool)
-    if states is not None and known is not None:
-        at = np.array(shown)
-        still[1:] = known[at[1:]] & known[at[:-1]] & (np.abs(states[at[1:]] - states[at[:-1]]) <= SAME_STATE)
-        if known[at].any():  # the frames at the lowest labelled state: where it rests closed; the highest: open
-            closed = known[at] & (states[at] <= states[at][known[at]].min() + SAME_STATE)
-            opened = known[at] & (states[at] >= states[at][known[at]].max() - SAME_STATE) & ~closed
+    still, (closed, opened) = label_ends(shown, states, known)
     ends = [[shown[f] for f in np.flatnonzero(e)[::max(1, int(e.sum()) // 8)]] for e in (closed, opened)]
     best = max(((ln, *fit_leaf(coarse, ln, shown, keys, ends)) for ln in lines[:4]), key=lambda r: r[2])
     line, size, mean_iou = best
@@ -517,6 +537,25 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
                np.full(len(frames), step), 1.0, {}), fig
 
 
+def measure_outlines(route: str, motion: Any, kind_from: str, ds, obj: int, states: np.ndarray, known: np.ndarray,
+                     labelled: np.ndarray, keys: list[int], min_pixels: int, trust_labels: bool,
+                     confidence: np.ndarray | None, views: Views | None) -> tuple[Articulation | None, dict[str, Any]]:
+    """A route that reads a part's masks against the known cameras (`motion(views, frames, keys, states, known)`
+    -> (Fit or None, figures with `<route>_reason`)) over the frames the masks stage trusts, its fit oriented by
+    the labels (`articulate`)."""
+    views = views_of(ds, obj) if views is None else views
+    frames = trusted_frames(views, keys, min_pixels, confidence)
+    if not frames:
+        return None, {f"{route}_reason": "the part shows in no frame", "route": route, "registered": 0}
+    fit, fig = motion(views, frames, keys, states, known)
+    fig["route"] = route
+    if fit is None:
+        return None, dict(fig, registered=0)
+    fig.update(registered=int(fit.ok.sum()), kind_from=kind_from)
+    at = np.array(frames)
+    return articulate(fit, at, states[at], known[at], labelled[at], fig, trust_labels)
+
+
 def measure_edge(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: np.ndarray, keys: list[int],
                  min_pixels: int = 400, trust_labels: bool = False, confidence: np.ndarray | None = None,
                  views: Views | None = None) -> tuple[Articulation | None, dict[str, Any]]:
@@ -524,20 +563,8 @@ def measure_edge(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: 
     keyframes; confidence (N,): the masks stage's per-frame confidence, frames under `MIN_CONFIDENCE` left out but
     the keyframes; `views`: `views_of(ds, obj)` when the caller has it); (None, figures with `edge_reason`) when the
     route cannot measure it."""
-    views = views_of(ds, obj) if views is None else views
-    n = len(views.masks)
-    trusted = np.ones(n, bool) if confidence is None else np.asarray(confidence) >= MIN_CONFIDENCE
-    trusted[[k for k in keys if k < n]] = True
-    frames = [i for i, m in enumerate(views.masks) if trusted[i] and int(m.sum()) >= min_pixels]
-    if not frames:
-        return None, {"edge_reason": "the part shows in no frame", "route": "edge", "registered": 0}
-    fit, fig = edge_motion(views, frames, keys, states, known)
-    fig["route"] = "edge"
-    if fit is None:
-        return None, dict(fig, registered=0)
-    fig.update(registered=int(fit.ok.sum()), kind_from="the static edge of its outline")
-    at = np.array(frames)
-    motion, fig = articulate(fit, at, states[at], known[at], labelled[at], fig, trust_labels)
+    motion, fig = measure_outlines("edge", edge_motion, "the static edge of its outline", ds, obj, states, known,
+                                   labelled, keys, min_pixels, trust_labels, confidence, views)
     if fig.get("accepted") and motion.range > np.pi:  # the labels scaled what it measured past what a door can turn
         fig.update(accepted=False, reason=f"its range comes to {np.degrees(motion.range):.0f} deg, more than a door or "
                                           f"lid turns: the measured angles or the labels that scale them are wrong")

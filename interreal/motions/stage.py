@@ -13,7 +13,8 @@ plain for both, needs no pose: see the end):
 When neither gives an accepted motion, the part's silhouettes against the known cameras (`motions.silhouette`:
 its flat front triangulated from its masks' corners, then the hinge or slide whose predicted silhouettes fit the
 masks) measure every frame's displacement directly, and for a plain door cut by the image border, the one straight
-edge of its outline that stays put is its hinge (`motions.edge`).
+edge of its outline that stays put is its hinge (`motions.edge`); for a plain drawer, its front at rest on one
+of those edges, pulled out along its normal, each frame's pull from its mask (`motions.prism`).
 `motions.fit` turns those poses into a hinge or a slide decided by the geometry (does the part turn about
 one axis, or translate along one line?), measures every registered frame's state from its displacement, and uses
 the labels only to fix the ends and the direction; labels that disagree with the geometry are named as likely
@@ -47,10 +48,13 @@ from ..transients import excluded
 from .fit import FLAG_TOL, PartViews, fit_motion, part_point
 from .pnp import pnp_views, reference_frames
 from .edge import measure_edge
+from .prism import measure_prism
 from .silhouette import Views, measure_silhouettes, views_of
 
 # MotionConfig.route: the route tried first; the others follow, in this order, while no motion is accepted
-ROUTES = ("sfm", "pnp", "silhouette", "edge")
+ROUTES = ("sfm", "pnp", "silhouette", "edge", "prism")
+# the routes that read the part's masks against the known cameras: (progress label, measure)
+OUTLINE_ROUTES = {"edge": ("static edge", measure_edge), "prism": ("front pulled out", measure_prism)}
 PNP_LONG_SIDE = 800  # the PnP route reads the images at most this large
 MAX_STATE_RMSE = 0.1  # an accepted motion's labels within this RMSE: no retry with another mapper seed
 __all__ = ["PartViews", "fit_motion", "estimate_motions", "measure_part", "MotionConfig"]
@@ -75,7 +79,8 @@ class MotionConfig:
                                "part's own SfM), pnp (known-camera PnP: seconds, needs a stretch where the part "
                                "rests), silhouette (its masks against the known cameras: for a plain part with "
                                "a flat front whose corners show) or edge (a plain door or lid cut by the image "
-                               "border: the static edge of its keyframes' outlines as the hinge)", choices=ROUTES)
+                               "border: the static edge of its keyframes' outlines as the hinge) or prism (a plain "
+                               "drawer: its front at rest pulled out along its normal)", choices=ROUTES)
     trust_labels: bool = option(False, "let the state labels calibrate each motion and refuse it when most of them "
                                        "disagree (default: the geometry measures every frame's state, the labels "
                                        "only say which end is closed, and a label that disagrees is reported)")
@@ -230,7 +235,9 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
     - silhouette (`motions.silhouette`, needs `obj`, the object's index): its masks against the known
       cameras, for a part too plain for either (seconds);
     - edge (`motions.edge`, needs `obj`): a plain door or lid whose corners no view shows: the static edge of its
-      keyframes' outlines as the hinge, the leaf fitted to every mask (tens of seconds).
+      keyframes' outlines as the hinge, the leaf fitted to every mask (tens of seconds);
+    - prism (`motions.prism`, needs `obj`): a plain drawer: its front at rest on such an edge pulled out along its
+      normal, refused where a leaf turning on the edge explains the masks as well (up to a minute).
     `cfg.route` is tried first, the others in `ROUTES` order while none gives an accepted motion (`routes`: only
     these, in this order; a benchmark measures each alone). The best fit is returned (None when no
     route registered enough frames with a known state).
@@ -257,19 +264,21 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
             views = views_of(ds, obj) if views is None else views
             motion, fig = measure_silhouettes(ds, obj, states, known, labelled, cfg.min_pixels, cfg.trust_labels,
                                               views)
-        elif route == "edge":
+        elif route in OUTLINE_ROUTES:
             if obj is None:
                 continue
-            step("static edge")
+            label, measure = OUTLINE_ROUTES[route]
+            step(label)
             views = views_of(ds, obj) if views is None else views
-            motion, fig = measure_edge(ds, obj, states, known, labelled, keyframe_positions(ds), cfg.min_pixels,
-                                       cfg.trust_labels, mask_confidence(ds, obj), views)
+            motion, fig = measure(ds, obj, states, known, labelled, keyframe_positions(ds), cfg.min_pixels,
+                                  cfg.trust_labels, mask_confidence(ds, obj), views)
         else:
             motion, fig = _measure_part_sfm(pc, ds, names, part, states, known, labelled, cfg, step, start)
         fig.setdefault("route", route)
         tried[route] = {"registered": fig.get("registered", 0), "kind": None if motion is None else motion.kind,
                         "accepted": bool(fig.get("accepted")),
                         "reason": fig.get("reason") or fig.get("silhouette_reason") or fig.get("edge_reason")
+                        or fig.get("prism_reason")
                         or ("" if fig.get("accepted") else "gave no motion (no reason recorded)"),
                         "seconds": round(time.monotonic() - t0, 1)}
         if route == "sfm":

@@ -530,6 +530,7 @@ def add_arguments(p) -> None:
     p.add_argument("--force", action="store_true", help="measure again even when a finished run matches")
     p.epilog = ("examples:\n  interreal motions out/ds\n  interreal motions out/ds --erode 4\n"
                 "  interreal motions out/ds --route edge      # a plain door filmed from close by, tried first\n"
+                "  interreal motions out/ds --route prism     # a plain drawer, tried first\n"
                 f"writes DS/{ARTICULATION_FILE} (read by `livescene train`) and DS/reports/motions.json")
 
 

@@ -7,11 +7,14 @@ hinge candidates. So:
 1. the front: for each candidate static line (`edge.hinge_lines`, from the keyframes' outlines), the leaf on it that
    best covers the masks (`edge.fit_leaf`), at the angle most frames agree with (a front does not turn), then the
    plane give or take 10 deg, which side it comes out on and how far in front of or behind the line it lies, by
-   the overlap of each frame's best pull; the best of the lines;
+   the overlap of each frame's best pull; each line's front then has its size, angle and shift refined (the
+   leaf's size was fitted to a turning leaf, which an open drawer's top and sides bend);
 2. each frame's pull by dynamic programming over the frames in time order (a drawer moves smoothly; the keyframes,
    a person's masks, count `edge.KEY_WEIGHT` frames), the frames labelled at one end sharing one pull;
 3. `judge`: the keyframes explained, and the slide explains the frames it moved in better than a leaf turning on
-   the same line does (a door is the edge route's), so a door whose masks tie is not made a drawer.
+   one of those lines does (a door is the edge route's), so a door whose masks tie is not made a drawer.
+Its limits: the front's plane is what it gets least right (3-13 deg off on simulated plain drawers), and where the
+masks cannot tell a pulled drawer from a door turned a little, it refuses (docs/measurements.md, 2026-12-05).
 The pulls are the displacement `fit.articulate` reads: the geometry measures, the labels only orient.
 """
 
@@ -34,7 +37,7 @@ SMOOTH = 0.5                       # overlap given up per front width pulled bet
 TILT_DEG = (-10.0, 0.0, 10.0)      # the front's plane about the line, around the angle the frames agree on
 SHIFTS = np.linspace(-1 / 3, 1 / 3, 5)  # ... and in front of or behind it, in widths
 SAMPLE = 24                        # frames the front is chosen on (spread over the video)
-REFINE_STEPS = 80                  # Nelder-Mead steps refining the front
+REFINE_STEPS = 80                  # Nelder-Mead steps refining each line's front
 
 
 @dataclass
@@ -77,13 +80,15 @@ def front_score(sil: Silhouettes, front: Front, groups: list[list[int]], reach: 
                           for g in groups if g]))
 
 
-def best_front(sil: Silhouettes, leaf: edge.Leaf, size: np.ndarray, frames: list[int], rest: float,
-               keys: list[int]) -> tuple[Front, float]:
-    """The front (`Front`) whose best pull per frame overlaps the masks most: the keyframes' mean (a person's
-    masks) and the mean over a spread of at most `SAMPLE` other frames, in equal parts; and that overlap. Searched
-    around the leaf at angle `rest` (tilted, shifted, either side), then its size, angle and shift refined: the
-    leaf's size was fitted to a turning leaf, which an open drawer's top and sides bend."""
-    groups = [[k for k in keys if k in frames], sorted(set(frames[::max(1, len(frames) // SAMPLE)]) - set(keys))]
+def front_groups(frames: list[int], keys: list[int]) -> list[list[int]]:
+    """The frames a front is scored on: the keyframes (a person's masks), a spread of at most `SAMPLE` others."""
+    return [[k for k in keys if k in frames], sorted(set(frames[::max(1, len(frames) // SAMPLE)]) - set(keys))]
+
+
+def grid_front(sil: Silhouettes, leaf: edge.Leaf, size: np.ndarray, rest: float, groups: list[list[int]]
+               ) -> tuple[float, np.ndarray, float]:
+    """(score, parameters, side) of the best front around the leaf of `size` at angle `rest`: tilted, shifted,
+    coming out on either side (`front_at`), scored by `front_score` on `groups`."""
     best: tuple[float, np.ndarray, float] = (-1.0, np.zeros(5), 1.0)
     for phi in rest + np.radians(TILT_DEG):
         for sign in (1.0, -1.0):  # the drawer comes out on one side of its front
@@ -92,7 +97,13 @@ def best_front(sil: Silhouettes, leaf: edge.Leaf, size: np.ndarray, frames: list
                 score = front_score(sil, front_at(leaf, x, sign), groups, REACH[::2])
                 if score > best[0]:
                     best = (score, x, sign)
-    _, x0, sign = best
+    return best
+
+
+def refine_front(sil: Silhouettes, leaf: edge.Leaf, x0: np.ndarray, sign: float, groups: list[list[int]]
+                 ) -> tuple[Front, float]:
+    """The front's size, angle and shift refined from `x0` (the leaf's size was fitted to a turning leaf, which an
+    open drawer's top and sides bend), and its score."""
     steps = np.array([0.1 * x0[0], 0.1, 0.1, np.radians(3.0), 0.05])
     res = minimize(lambda x: -front_score(sil, front_at(leaf, x, sign), groups, REACH[::2]), x0, method="Nelder-Mead",
                    options={"xatol": 1e-3, "fatol": 1e-4, "maxiter": REFINE_STEPS,
@@ -121,17 +132,17 @@ def find_front(views: Views, frames: list[int], keys: list[int], coarse: Silhoue
                                f"{edge.MAX_LINE_PX}): no front to pull")
         return None, [], fig
     shown = [i for i in frames if i in coarse.crop]
-    best: tuple[float, Front | None] = (-1.0, None)
-    leaves = []
-    for ln in lines[:4]:
+    groups = front_groups(shown, keys)
+    leaves, grids = [], []
+    for ln in lines[:4]:  # the front on each line searched on a grid, then refined
         leaf = edge.Leaf(ln)
         size, _ = edge.fit_leaf(coarse, ln, shown, keys, ends)
         leaves.append((leaf, size))
-        front, score = best_front(coarse, leaf, size, shown, resting_angle(coarse, leaf, size, shown), keys)
-        if score > best[0]:
-            best = (score, front)
-    fig["prism_front_iou"] = round(best[0], 3)
-    return best[1], leaves, fig
+        grids.append(grid_front(coarse, leaf, size, resting_angle(coarse, leaf, size, shown), groups))
+    front, score = max((refine_front(coarse, leaf, g[1], g[2], groups) for (leaf, _), g in zip(leaves, grids)),
+                       key=lambda r: r[1])  # every line's: the grid's order is not the refined one's (seed 3)
+    fig["prism_front_iou"] = round(score, 3)
+    return front, leaves, fig
 
 
 def pull_path(curves: np.ndarray, width: float, still: np.ndarray, ends: list[np.ndarray]) -> np.ndarray:

@@ -470,6 +470,11 @@ def label_ends(shown: list[int], states: np.ndarray | None, known: np.ndarray | 
     return still, [closed, opened]
 
 
+def end_samples(shown: list[int], ends: list[np.ndarray]) -> list[list[int]]:
+    """Of each of `ends` (bool over `shown`), at most about 8 of its frames, spread: what `fit_leaf` pins a size on."""
+    return [[shown[f] for f in np.flatnonzero(e)[::max(1, int(e.sum()) // 8)]] for e in ends]
+
+
 def trusted_frames(views: Views, keys: list[int], min_pixels: int, confidence: np.ndarray | None) -> list[int]:
     """The frames whose mask shows the part (`min_pixels`) and that the masks stage trusts (`MIN_CONFIDENCE`;
     the keyframes always)."""
@@ -499,7 +504,7 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
     coarse, sil = Silhouettes(views, frames, SEARCH_SIDE), Silhouettes(views, frames)
     shown = [i for i in frames if i in sil.crop]
     still, (closed, opened) = label_ends(shown, states, known)
-    ends = [[shown[f] for f in np.flatnonzero(e)[::max(1, int(e.sum()) // 8)]] for e in (closed, opened)]
+    ends = end_samples(shown, [closed, opened])
     best = max(((ln, *fit_leaf(coarse, ln, shown, keys, ends)) for ln in lines[:4]), key=lambda r: r[2])
     line, size, mean_iou = best
     leaf = Leaf(line)

@@ -57,9 +57,9 @@ class Front:
         return self.corners.mean(0)
 
 
-def pull_curves(sil: Silhouettes, front: Front, frames: list[int]) -> np.ndarray:
-    """(F, len(REACH)) overlap of each frame's mask with the front pulled by each of `REACH` widths."""
-    return np.array([[sil.iou(front.prism(r * front.width), i) for r in REACH] for i in frames])
+def pull_curves(sil: Silhouettes, front: Front, frames: list[int], reach: np.ndarray = REACH) -> np.ndarray:
+    """(F, len(reach)) overlap of each frame's mask with the front pulled by each of `reach` widths."""
+    return np.array([[sil.iou(front.prism(r * front.width), i) for r in reach] for i in frames])
 
 
 def front_at(leaf: edge.Leaf, x: np.ndarray, sign: float) -> Front:
@@ -76,8 +76,7 @@ def front_score(sil: Silhouettes, front: Front, groups: list[list[int]], reach: 
     """The mean over `groups` (the keyframes, a spread of other frames) of each frame's best overlap at a pull."""
     if front.width <= 0:
         return 0.0
-    return float(np.mean([np.mean([max(sil.iou(front.prism(r * front.width), i) for r in reach) for i in g])
-                          for g in groups if g]))
+    return float(np.mean([pull_curves(sil, front, g, reach).max(1).mean() for g in groups if g]))
 
 
 def front_groups(frames: list[int], keys: list[int]) -> list[list[int]]:
@@ -150,14 +149,8 @@ def pull_path(curves: np.ndarray, width: float, still: np.ndarray, ends: list[np
     steps = REACH * width
     jump = SMOOTH * np.abs(REACH[:, None] - REACH[None, :])
     path = edge.anchored_path(curves, steps, still, ends, jump=jump)
-    out = steps[path].astype(float)
-    for f, j in enumerate(path):
-        if 0 < j < len(REACH) - 1:
-            a, b, c = curves[f, j - 1], curves[f, j], curves[f, j + 1]
-            den = a - 2 * b + c
-            if den < 0:
-                out[f] += float(np.clip(0.5 * (a - c) / den, -0.5, 0.5)) * (steps[1] - steps[0])
-    return out
+    return np.array([edge.refine(curves[f], j, steps) if 0 < j < len(REACH) - 1 else float(steps[j])
+                     for f, j in enumerate(path)])
 
 
 def turning_leaf(sil: Silhouettes, leaf: edge.Leaf, size: np.ndarray, shown: list[int], weight: np.ndarray,
@@ -170,9 +163,9 @@ def turning_leaf(sil: Silhouettes, leaf: edge.Leaf, size: np.ndarray, shown: lis
     return turns[np.arange(len(shown)), path]
 
 
-def judge(fig: dict[str, Any], sil: Silhouettes, front: Front, shown: list[int], pulls: np.ndarray,
-          iou: np.ndarray, keys: list[int], leaf_best: np.ndarray) -> str | None:
-    """Why the front pulled by `pulls` (over `shown`) is no drawer, or None; its figures into `fig`. leaf_best
+def judge(fig: dict[str, Any], shown: list[int], pulls: np.ndarray, iou: np.ndarray, keys: list[int],
+          leaf_best: np.ndarray) -> str | None:
+    """Why the front pulled by `pulls` (over `shown`; `iou` its overlap there) is no drawer, or None; its figures into `fig`. leaf_best
     (F,): each frame's best overlap by a leaf turning on one of the static lines, or on the front's own edge
     (`turning_leaf`): the rival."""
     key = [f for f, i in enumerate(shown) if i in keys]
@@ -205,7 +198,7 @@ def prism_motion(views: Views, frames: list[int], keys: list[int], states: np.nd
     coarse, sil = Silhouettes(views, frames, edge.SEARCH_SIDE), Silhouettes(views, frames)
     shown = [i for i in frames if i in sil.crop]
     still, ends = edge.label_ends(shown, states, known)
-    groups = [[shown[f] for f in np.flatnonzero(e)[::max(1, int(e.sum()) // 8)]] for e in ends]
+    groups = edge.end_samples(shown, ends)
     front, leaves, fig = find_front(views, frames, keys, coarse, groups)
     if front is None:
         return None, fig
@@ -216,7 +209,7 @@ def prism_motion(views: Views, frames: list[int], keys: list[int], states: np.nd
     own = edge.Leaf(edge.Line(front.corners[0], front.corners[1], 0.0, keys[0]))
     leaves.append((own, np.array([np.linalg.norm(front.corners[3] - front.corners[0]) / own.length, 0.0, 1.0])))
     leaf_best = np.max([turning_leaf(coarse, leaf, size, shown, weight, still, ends) for leaf, size in leaves], axis=0)
-    reason = judge(fig, sil, front, shown, pulls, iou, keys, leaf_best)
+    reason = judge(fig, shown, pulls, iou, keys, leaf_best)
     if reason:
         fig["prism_reason"] = reason
         return None, fig

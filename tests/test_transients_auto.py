@@ -81,6 +81,29 @@ def test_the_hand_model_finds_the_hand_on_a_real_frame(clip):
     assert set(track.how) <= {"tracked", "static", "filled", ""} and track.how[10] in ("tracked", "static")
 
 
+def test_the_hand_model_finds_the_simulated_hand():
+    """The simulator's arm (`--arm`) ends in a hand the hand model finds, so the layer is measured on simulated
+    captures too; its landmarks lie on the hand's pixels."""
+    from interreal.synth import SynthConfig
+    from interreal.synth.scene import build_scene
+
+    needs_model()
+    scene = build_scene(SynthConfig(frames=90, width=960, height=720, seed=1, furniture="plain", arm=True))
+    moving = [t for t in range(90) if scene.moving(t)][::4]
+    frames = [scene.render_frame(t) for t in moving]
+    track = Hd.find_hands(lambda p: frames[p].rgb, len(frames))
+    assert track.found_share() >= 0.4  # every 4th frame: tracking holds less than over the whole video (0.82)
+    on_arm = []
+    for f, hands in zip(frames, track.hands):
+        near = cv2.dilate((f.instance == 255).astype(np.uint8), np.ones((15, 15), np.uint8))
+        for hand in hands:
+            centre = np.round(hand.mean(0)).astype(int).clip(0, [959, 719])
+            assert near[centre[1], centre[0]]  # each hand found is on the simulator's hand and arm
+            xy = np.round(hand).astype(int).clip(0, [959, 719])
+            on_arm.append(near[xy[:, 1], xy[:, 0]].mean())
+    assert np.mean(on_arm) > 0.8  # most landmarks on it (a cartoon thumb's may be guessed off it)
+
+
 def test_the_auto_layer_grows_the_hand_to_the_arm_on_real_video(clip):
     needs_model()
     layer = A.propose(lambda p: clip[p], len(clip), (1072, 608))
@@ -158,6 +181,8 @@ def test_fill_gaps_interpolates_short_gaps_only():
     out, how2 = Hd.fill_gaps(hands, how, max_gap=4)
     assert how2[1:4] == ["filled"] * 3 and np.allclose(out[2][0, 0], (20, 10))
     assert all(len(out[p]) == 0 for p in range(5, 11))  # 6 frames: too long to guess
+    far = _hand((150, 10), (0, 1), 10)[None]  # the other hand, at another part: two hands, not one moving
+    assert Hd.fill_gaps([a, empty, far], ["tracked", "", "tracked"])[1][1] == ""
     two = np.concatenate([a, b])
     out, how3 = Hd.fill_gaps([two, empty, a], ["tracked", "", "tracked"])
     assert how3[1] == ""  # two hands one side, one the other: not paired

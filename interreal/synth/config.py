@@ -49,8 +49,9 @@ class SynthConfig:
     speed: float = option(1.0, "camera speed multiplier (fast motion: the arc is swept back and forth)")
     jitter: float = option(1.0, "hand-shake scale (0 = tripod-smooth)")
     occluder: float = option(0.0, "fraction of frames a person walks across the view, 0-1")
-    arm: bool = option(False, "a hand and a sleeved forearm reach in from the image edge and hold each part while "
-                              "it moves (in front of it, as in a real capture)")
+    arm: bool = option(False, "a hand (palm, fingers, thumb: one a hand model finds) and a sleeved forearm reach in "
+                              "from the image's right edge and hold each part while it moves (in front of it, as in "
+                              "a real capture)")
     paint_occluders: bool = option(False, "keyframes paint the person and the arm as the ignore class, as a careful "
                                           "user does in the annotate app (otherwise they are left as background)")
     articulation: float = option(1.0, "scale of each part's range of motion (angle / slide length)")

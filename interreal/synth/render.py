@@ -1,7 +1,8 @@
-"""Vectorised CPU ray caster for scenes made of oriented boxes.
+"""Vectorised CPU ray caster for scenes made of oriented boxes (and ellipsoids inscribed in some of them).
 
 Why boxes: a room, its furniture, doors, drawers, lids and a blocky person are all boxes, and the ray/box slab test
-is exact, cheap and vectorises in numpy. The lens distortion is handled exactly: every pixel centre is undistorted
+is exact, cheap and vectorises in numpy. A hand is not: a hand detector finds a palm and fingers only where they are
+round (`rounded` boxes are drawn as the ellipsoid inscribed in them, shaded by its own normal). The lens distortion is handled exactly: every pixel centre is undistorted
 once per intrinsics (`cv2.undistortPoints`, iterated to 1e-12), so the ray through pixel (u, v) is the ray that the
 OpenCV model projects back onto (u + 0.5, v + 0.5). Pixel centres sit at +0.5, as in nerfstudio and COLMAP, so
 `Intrinsics.scaled` stays exact.
@@ -39,6 +40,11 @@ class Prims:
     scale: np.ndarray  # (P, 6) metres per tile
     offset: np.ndarray  # (P, 6, 2) tile-unit offset
     inverted: np.ndarray  # (P,) bool: seen from inside (the room)
+    rounded: np.ndarray | None = None  # (P,) bool: the ellipsoid inscribed in the box (None: no box is)
+
+    def __post_init__(self) -> None:
+        if self.rounded is None:
+            self.rounded = np.zeros(len(self.c), bool)
 
     def __len__(self) -> int:
         return len(self.c)
@@ -131,6 +137,8 @@ class RayCaster:
                 if b == 0:  # the room, seen from inside: every ray leaves it
                     zbuf[:] = tfar
                     continue
+                if prims.rounded[b]:
+                    tnear, tfar = _ellipsoid_hits(M, ol, hb, X, Y)
                 zs = zbuf[r0:r1, c0:c1]
                 hit = (tnear <= tfar) & (tnear > NEAR) & (tnear < zs)
                 np.copyto(zs, tnear, where=hit)
@@ -192,8 +200,47 @@ class RayCaster:
         d2 = sum((np.float32(lp[j] - o[j]) - t * D[j]) ** 2 for j in range(3))
         point = np.maximum(n_dot_l, 0) / np.maximum(np.sqrt(d2), 1e-6) / (1.0 + d2 * np.float32(1.0 / light.point_range ** 2))
         gain = f[5] + np.float32(light.point_gain) * point
+        if prims.rounded.any():
+            _round_gain(gain, prims, pid, L, light, o, D, t)
         albedo = cv2.remap(atlas_image, tx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return albedo * gain[..., None]
+
+
+def _ellipsoid_hits(M: np.ndarray, ol: np.ndarray, hb: np.ndarray, X: np.ndarray,
+                    Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(tnear, tfar) of the rays (X, Y, 1) with the ellipsoid inscribed in a box (its local ray matrix M, local
+    origin ol, half extents hb); tnear > tfar where a ray misses."""
+    d = [(M[k, 0] * X + M[k, 1] * Y + M[k, 2]) / hb[k] for k in range(3)]
+    o = ol / hb
+    a = d[0] ** 2 + d[1] ** 2 + d[2] ** 2
+    b = o[0] * d[0] + o[1] * d[1] + o[2] * d[2]
+    disc = b * b - a * (float(o @ o) - 1.0)
+    root = np.sqrt(np.maximum(disc, 0))
+    miss = disc < 0
+    tnear = np.where(miss, np.float32(np.inf), (-b - root) / a)
+    tfar = np.where(miss, np.float32(-np.inf), (-b + root) / a)
+    return tnear, tfar
+
+
+def _round_gain(gain: np.ndarray, prims: Prims, pid: np.ndarray, L: list[np.ndarray], light: Lighting,
+                o: np.ndarray, D: list[np.ndarray], t: np.ndarray) -> None:
+    """Lambertian shading of the pixels on rounded boxes by the ellipsoid's normal at each hit (in place): a box
+    face's single normal would draw it flat."""
+    sel = prims.rounded[pid]
+    if not sel.any():
+        return
+    p = pid[sel].astype(np.intp)
+    n_loc = np.stack([L[k][sel] / prims.h[p, k] ** 2 for k in range(3)], axis=1)
+    n = np.einsum("pij,pj->pi", prims.R[p], n_loc)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    sun = np.asarray(light.sun_dir, np.float64)
+    sun = sun / np.linalg.norm(sun)
+    hit = o[None] + t[sel][:, None] * np.stack([D[j][sel] for j in range(3)], axis=1)
+    to_light = np.asarray(light.point, np.float64)[None] - hit
+    d2 = np.sum(to_light ** 2, axis=1)
+    point = np.maximum(np.sum(n * to_light, axis=1), 0) / np.maximum(np.sqrt(d2), 1e-6) / (
+        1.0 + d2 / light.point_range ** 2)
+    gain[sel] = light.ambient + light.sun * np.clip(n @ sun, 0, None) + light.point_gain * point
 
 
 def _mirror(x: np.ndarray, size: np.ndarray) -> np.ndarray:

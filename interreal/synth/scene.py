@@ -24,6 +24,7 @@ from ..dataset import Articulation, Intrinsics
 from ..errors import InputError
 from .camera import CameraPath, phone_intrinsics
 from .config import SynthConfig
+from .body import arm_prims
 from .render import OCCLUDER, Lighting, Prims, RayCaster
 from .schedule import PartSchedule, make_schedules
 from .textures import TILE, Atlas, TextureMaker
@@ -500,7 +501,8 @@ class Scene:
 
     def _arm(self, time: float, part: Part, state: float) -> Prims:
         """A hand at the part's grasp point (its box centre, pushed out of it toward the camera) and a sleeved
-        forearm from there to a shoulder below and to the right of the camera, so it enters from the image edge."""
+        forearm from there to a shoulder to the right of the camera, so it enters from the image's right edge and is
+        seen from the side, not along its length (`body.arm_prims`)."""
         cam = self.path.pose_cv(float(np.clip(time, 0, self.cfg.frames - 1)))
         eye, right, down = cam[:3, 3], cam[:3, 0], cam[:3, 1]
         R, t = part.pose(float(np.clip(state, 0.0, 1.0)))
@@ -511,22 +513,8 @@ class Scene:
         d_rest /= np.linalg.norm(d_rest)
         exit_t = float(np.min(half / np.maximum(np.abs(d_rest), 1e-9)))
         grasp = R @ (centre + d_rest * (exit_t + 0.06)) + t
-        shoulder = eye + 0.6 * down + 0.45 * right - 0.1 * cam[:3, 2]
-        axis = grasp - shoulder
-        length = float(np.linalg.norm(axis))
-        axis /= length
-        side = np.cross(axis, [0.0, 0.0, 1.0])
-        side = side / np.linalg.norm(side) if np.linalg.norm(side) > 1e-6 else np.array([1.0, 0.0, 0.0])
-        Rb = np.stack([axis, side, np.cross(axis, side)], axis=1)
-        skin = self._occ_tiles[2]
-        hand_len, forearm = 0.16, max(0.05, length - 0.14)  # the hand (with fingers) from under the cuff
-        boxes = [(shoulder + axis * forearm / 2, (forearm / 2, 0.04, 0.04), self._sleeve),
-                 (grasp - axis * hand_len / 2, (hand_len / 2, 0.05, 0.022), skin)]
-        n = len(boxes)
-        return Prims(R=np.repeat(Rb[None], n, axis=0), c=np.array([c for c, _, _ in boxes]),
-                     h=np.array([h for _, h, _ in boxes], float), inst=np.full(n, OCCLUDER, np.uint8),
-                     tile=np.array([[tile] * 6 for _, _, tile in boxes], np.int64), scale=np.full((n, 6), 0.8),
-                     offset=np.zeros((n, 6, 2)), inverted=np.zeros(n, bool))
+        shoulder = eye + 0.35 * down + 0.9 * right + 0.2 * cam[:3, 2]
+        return arm_prims(shoulder, grasp, eye - grasp, skin=self._occ_tiles[2], sleeve=self._sleeve)
 
     def exposure(self, frame: int | float | None) -> float:
         if frame is None or self.cfg.exposure_drift <= 0:

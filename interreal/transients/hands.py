@@ -27,6 +27,7 @@ INSTALL = (f'pip install --no-deps mediapipe=={MEDIAPIPE_VERSION} "protobuf>=4.2
            f"matplotlib")
 STATIC_CONFIDENCE = 0.2  # palm-detection confidence of the second (static) pass: low, it only looks where tracking lost
 MAX_GAP = 4  # frames: a hand missed on at most this many frames between two finds is interpolated
+MAX_JUMP = 2.0  # ... when its wrist moved at most this many hand lengths across the gap (else two hands, not one)
 N_LANDMARKS = 21
 WRIST, MIDDLE_MCP, INDEX_MCP, PINKY_MCP = 0, 9, 5, 17  # mediapipe's landmark indices
 
@@ -120,7 +121,7 @@ def _landmarks(result, shape: tuple[int, ...]) -> np.ndarray:
 
 def fill_gaps(hands: list[np.ndarray], how: list[str], max_gap: int = MAX_GAP) -> tuple[list[np.ndarray], list[str]]:
     """Interpolate the landmarks across a gap of at most `max_gap` frames whose two sides hold as many hands (paired
-    by nearest wrist): the hand and the camera move little in that time, and a frame the model missed (motion blur,
+    by nearest wrist, none moved over `MAX_JUMP` hand lengths): the hand and the camera move little in that time, and a frame the model missed (motion blur,
     a hand side-on) is as much in the way as its neighbours."""
     hands, how = list(hands), list(how)
     found = [p for p in range(len(hands)) if len(hands[p])]
@@ -128,6 +129,9 @@ def fill_gaps(hands: list[np.ndarray], how: list[str], max_gap: int = MAX_GAP) -
         if not 1 < b - a <= max_gap + 1 or len(hands[a]) != len(hands[b]):
             continue
         order = _pair(hands[a], hands[b])
+        jump = max(float(np.linalg.norm(hands[b][j, WRIST] - h[WRIST])) / hand_length(h) for h, j in zip(hands[a], order))
+        if jump > MAX_JUMP:  # one hand let go and another took hold: nothing between them is either
+            continue
         for pos in range(a + 1, b):
             w = (pos - a) / (b - a)
             hands[pos] = (1 - w) * hands[a] + w * hands[b][order]

@@ -37,6 +37,37 @@ def test_intrinsics_are_phone_like(scene):
     assert err < 1e-3
 
 
+def test_a_rounded_box_is_drawn_as_its_inscribed_ellipsoid():
+    """A sphere (a rounded cube) seen face-on covers its tangent cone's disc, not the cube's square, its depth is
+    nearest at the centre, and its shading falls off toward the rim (its own normal, not one per face)."""
+    from interreal.dataset import Intrinsics
+    from interreal.synth.render import Lighting, Prims
+
+    intr = Intrinsics(w=200, h=200, fl_x=400.0, fl_y=400.0, cx=100.0, cy=100.0)
+    caster = RayCaster(intr)
+    room = dict(R=np.eye(3)[None], c=np.zeros((1, 3)), h=np.full((1, 3), 50.0), inst=np.zeros(1, np.uint8),
+                tile=np.zeros((1, 6), np.int64), scale=np.ones((1, 6)), offset=np.zeros((1, 6, 2)),
+                inverted=np.ones(1, bool))
+    cover = {}
+    for rounded in (False, True):
+        prims = Prims(**{k: np.concatenate([v, v[:1]]) for k, v in room.items()})
+        prims.c[1], prims.h[1], prims.inst[1], prims.inverted[1] = (0, 0, 4.0), (0.5, 0.5, 0.5), 1, False
+        prims.rounded = np.array([False, rounded])
+        t, pid = caster.cast(np.eye(4), prims)
+        cover[rounded] = (pid == 1).sum()
+        if rounded:
+            z = np.where(pid == 1, t, np.inf)
+            assert np.unravel_index(np.argmin(z), z.shape) in {(99, 99), (99, 100), (100, 99), (100, 100)}
+            assert abs(z.min() - 3.5) < 0.01
+            atlas = np.ones((8, 8, 3), np.float32)
+            lin = caster.shade(np.eye(4), prims, t, pid, atlas, np.zeros(1, np.float32), np.full(1, 8, np.float32),
+                               Lighting(sun_dir=(0.0, 0.0, -1.0), point_gain=0.0))
+            assert lin[100, 100, 0] > lin[100, 100 + 45, 0] + 0.1  # face-on at the centre, grazing at the rim
+    r, d, f = 0.5, 4.0, 400.0  # the silhouettes in perspective: the cube's front face, the sphere's tangent cone
+    assert abs(cover[False] / (2 * f * r / (d - r)) ** 2 - 1) < 0.02
+    assert abs(cover[True] / (np.pi * (f * r / np.sqrt(d * d - r * r)) ** 2) - 1) < 0.02
+
+
 def test_camera_path_and_schedule(scene):
     poses = scene.camera_path()
     states = scene.states()

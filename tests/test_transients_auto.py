@@ -154,6 +154,31 @@ def test_seeds_put_the_forearm_away_from_the_fingers_and_to_the_edge():
     assert reach[0:40, 100].all() and not reach[150:, :].any()
 
 
+def test_the_forearm_follows_a_bent_wrist_where_the_image_shows_the_sleeve():
+    """Fingers point down, but the sleeve leaves the wrist 45 deg off the knuckles' line (a bent wrist, or landmarks
+    guessed on a hand seen side-on): with the frame the reach takes the sleeve and the layer grows onto it; without
+    it, straight on, it misses most of the sleeve."""
+    rng = np.random.default_rng(1)
+    img = rng.integers(95, 135, (240, 320, 3)).astype(np.uint8)
+    sleeve = np.zeros((240, 320), np.uint8)
+    wrist = np.array([160.0, 140.0])
+    cv2.line(sleeve, (160, 140), (160 + 200, 140 - 200), 1, 22)  # up and to the right, 45 deg off straight up
+    img[sleeve > 0] = (40, 150, 60)
+    cv2.circle(img, (160, 160), 20, (225, 180, 160), -1)
+    hand = _hand(tuple(wrist), (0, 1), 20)
+    lab = cv2.cvtColor(cv2.GaussianBlur(img, (5, 5), 0), cv2.COLOR_RGB2LAB).astype(np.float32)
+    d = A.forearm_direction(lab, hand)
+    assert abs(np.degrees(np.arctan2(-d[1], d[0])) - 45) <= 15  # the sleeve's own direction (image y is down)
+    truth = (sleeve > 0) | (np.hypot(*np.mgrid[0:240, 0:320][::-1] - np.array([160, 160])[:, None, None]) <= 20)
+    for with_img, least, most in ((True, 0.6, 1.0), (False, 0.0, 0.4)):
+        core, reach = A.seeds(hand[None], truth.shape, img if with_img else None)
+        got = A.grow_rounds(img, core, reach)
+        assert least <= (got & truth).sum() / (got | truth).sum() <= most
+    flat = np.full_like(img, 110)  # nothing in view says which way: straight on
+    d = A.forearm_direction(cv2.cvtColor(flat, cv2.COLOR_RGB2LAB).astype(np.float32), hand)
+    assert np.allclose(d, [0, -1])
+
+
 def test_grow_follows_a_sleeve_of_another_colour_to_the_image_edge():
     """A skin-coloured hand, a green sleeve from its wrist to the top edge, a textured scene with a skin-coloured
     shelf elsewhere: the layer is hand and sleeve, not the shelf."""

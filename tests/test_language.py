@@ -311,6 +311,7 @@ def test_things_the_household_list_lacks_and_unknown_owners_are_refused(minilm):
     assert thing_named("the drawer where the pots are kept") == "drawer" and thing_named("the lid of the trunk") == "lid"
     assert thing_named("the stairs") == "stair" and thing_named("where the spoons go") == ""
     assert thing_named("pull the top drawer open") == "drawer" and thing_named("the left one of the doors") == ""
+    assert thing_named("the drawer underneath") == "drawer" and thing_named("the cupboard upstairs") == "cupboard"
     assert compound("the drawer-less door with the milk behind it") == ("", "")  # a hyphenated word is no owner
     assert compound("the left-hand wardrobe door") == ("door", "wardrobe")
     assert thing_named("the thing that keeps food cold") == "" and compound("the closet door on the right") == (

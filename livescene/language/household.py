@@ -112,7 +112,7 @@ MODIFIERS = frozenset(
     "open closed".split())
 # a noun phrase's head ends where a clause or a preposition starts: "the drawer where the pots are kept"
 _CLAUSE = re.compile(r"\b(?:where|that|which|who|whose|for|with|in|on|at|by|next|near|from|under|above|below|behind|"
-                     r"beside)\b")
+                     r"beside|underneath|beneath|over|inside|outside|upstairs|downstairs)\b")
 _HYPHENATED = re.compile(r"\b[a-z0-9]+(?:-[a-z0-9]+)+\b")  # "drawer-less", "left-hand", "built-in": says what kind
 _HOLDS = re.compile(r"\b(?:where|for|in which|on which)\b")
 _KEEPING = frozenset("is are be go goes keep keeps kept store stores stored put away hang hangs live lives belong "

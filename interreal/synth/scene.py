@@ -22,9 +22,9 @@ import numpy as np
 from ..conventions import opencv_to_opengl, opengl_to_opencv
 from ..dataset import Articulation, Intrinsics
 from ..errors import InputError
+from .body import arm_prims
 from .camera import CameraPath, phone_intrinsics
 from .config import SynthConfig
-from .body import arm_prims
 from .render import OCCLUDER, Lighting, Prims, RayCaster
 from .schedule import PartSchedule, make_schedules
 from .textures import TILE, Atlas, TextureMaker

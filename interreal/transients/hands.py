@@ -121,15 +121,16 @@ def _landmarks(result, shape: tuple[int, ...]) -> np.ndarray:
 
 def fill_gaps(hands: list[np.ndarray], how: list[str], max_gap: int = MAX_GAP) -> tuple[list[np.ndarray], list[str]]:
     """Interpolate the landmarks across a gap of at most `max_gap` frames whose two sides hold as many hands (paired
-    by nearest wrist, none moved over `MAX_JUMP` hand lengths): the hand and the camera move little in that time, and a frame the model missed (motion blur,
-    a hand side-on) is as much in the way as its neighbours."""
+    by nearest wrist, none moved over `MAX_JUMP` hand lengths): the hand and the camera move little in that time,
+    and a frame the model missed (motion blur, a hand side-on) is as much in the way as its neighbours."""
     hands, how = list(hands), list(how)
     found = [p for p in range(len(hands)) if len(hands[p])]
     for a, b in zip(found, found[1:]):
         if not 1 < b - a <= max_gap + 1 or len(hands[a]) != len(hands[b]):
             continue
         order = _pair(hands[a], hands[b])
-        jump = max(float(np.linalg.norm(hands[b][j, WRIST] - h[WRIST])) / hand_length(h) for h, j in zip(hands[a], order))
+        jump = max(float(np.linalg.norm(hands[b][j, WRIST] - h[WRIST])) / hand_length(h)
+                   for h, j in zip(hands[a], order))
         if jump > MAX_JUMP:  # one hand let go and another took hold: nothing between them is either
             continue
         for pos in range(a + 1, b):

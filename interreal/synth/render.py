@@ -2,9 +2,10 @@
 
 Why boxes: a room, its furniture, doors, drawers, lids and a blocky person are all boxes, and the ray/box slab test
 is exact, cheap and vectorises in numpy. A hand is not: a hand detector finds a palm and fingers only where they are
-round (`rounded` boxes are drawn as the ellipsoid inscribed in them, shaded by its own normal). The lens distortion is handled exactly: every pixel centre is undistorted
-once per intrinsics (`cv2.undistortPoints`, iterated to 1e-12), so the ray through pixel (u, v) is the ray that the
-OpenCV model projects back onto (u + 0.5, v + 0.5). Pixel centres sit at +0.5, as in nerfstudio and COLMAP, so
+round (`rounded` boxes are drawn as the ellipsoid inscribed in them, shaded by its own normal).
+The lens distortion is handled exactly: every pixel centre is undistorted once per intrinsics (`cv2.undistortPoints`,
+iterated to 1e-12), so the ray through pixel (u, v) is the ray that the OpenCV model projects back onto
+(u + 0.5, v + 0.5). Pixel centres sit at +0.5, as in nerfstudio and COLMAP, so
 `Intrinsics.scaled` stays exact.
 
 Rays are written d = R_cam @ (x_n, y_n, 1): the ray parameter t is the z-depth along the optical axis.

@@ -60,3 +60,17 @@ def test_no_keyframe_is_one_clear_reason():
     ds, truth, st, kn, labelled = capture("slide")
     motion, fig = measure_prism(ds, 0, st, kn, labelled, [], min_pixels=50)
     assert motion is None and "keyframe" in fig["prism_reason"]
+
+
+def test_a_front_pulled_out_in_every_frame_is_not_at_rest():
+    """A front that explains the masks only pulled out in every frame (never back at rest) was not found where the
+    drawer closes: refused, with the least pull named; the same front with frames at rest passes this check."""
+    from interreal.motions.prism import judge
+
+    shown = list(range(10))
+    iou = np.full(10, 0.9)
+    leaf = np.full(10, 0.5)
+    fig: dict = {}
+    reason = judge(fig, shown, np.linspace(0.06, 0.14, 10), iou, [0, 9], leaf)
+    assert reason is not None and "every frame" in reason and "0.06" in reason
+    assert judge({}, shown, np.linspace(0.0, 0.14, 10), iou, [0, 9], leaf) is None

@@ -178,6 +178,9 @@ def judge(fig: dict[str, Any], shown: list[int], pulls: np.ndarray, iou: np.ndar
     if key_iou < edge.MIN_KEY_IOU:
         return (f"a front pulled along its normal does not explain the keyframes' masks (overlap {key_iou:.2f}, need "
                 f"{edge.MIN_KEY_IOU}): no plain drawer")
+    if moved.all():
+        return (f"the front found is pulled out in every frame ({pulls.min():.3g} at least): it is not where the drawer "
+                f"rests, no plain drawer")
     if slide_iou < edge.MIN_FRAME_IOU:
         return (f"a front pulled along its normal overlaps the masks of the frames it moved in by {slide_iou:.2f} "
                 f"(need {edge.MIN_FRAME_IOU}): no plain drawer")

@@ -165,9 +165,9 @@ def turning_leaf(sil: Silhouettes, leaf: edge.Leaf, size: np.ndarray, shown: lis
 
 def judge(fig: dict[str, Any], shown: list[int], pulls: np.ndarray, iou: np.ndarray, keys: list[int],
           leaf_best: np.ndarray) -> str | None:
-    """Why the front pulled by `pulls` (over `shown`; `iou` its overlap there) is no drawer, or None; its figures into `fig`. leaf_best
-    (F,): each frame's best overlap by a leaf turning on one of the static lines, or on the front's own edge
-    (`turning_leaf`): the rival."""
+    """Why the front pulled by `pulls` (over `shown`; `iou` its overlap there) is no drawer, or None; its figures
+    into `fig`. leaf_best (F,): each frame's best overlap by a leaf turning on one of the static lines, or on the
+    front's own edge (`turning_leaf`): the rival."""
     key = [f for f, i in enumerate(shown) if i in keys]
     key_iou = float(iou[key].mean()) if key else 0.0
     moved = pulls >= edge.MOVED * pulls.max() if pulls.max() > 0 else np.zeros(len(pulls), bool)

@@ -277,8 +277,7 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
         fig.setdefault("route", route)
         tried[route] = {"registered": fig.get("registered", 0), "kind": None if motion is None else motion.kind,
                         "accepted": bool(fig.get("accepted")),
-                        "reason": fig.get("reason") or fig.get("silhouette_reason") or fig.get("edge_reason")
-                        or fig.get("prism_reason")
+                        "reason": fig.get("reason") or fig.get(f"{route}_reason")
                         or ("" if fig.get("accepted") else "gave no motion (no reason recorded)"),
                         "seconds": round(time.monotonic() - t0, 1)}
         if route == "sfm":

@@ -125,21 +125,10 @@ class RayCaster:
                 M = (prims.R[b].T @ Rc).astype(np.float32)
                 ol = (prims.R[b].T @ (o - prims.c[b])).astype(np.float32)
                 hb = prims.h[b].astype(np.float32)
-                tnear = tfar = None
-                for k in range(3):
-                    inv = 1.0 / (M[k, 0] * X + M[k, 1] * Y + M[k, 2])
-                    ta = (-hb[k] - ol[k]) * inv
-                    tb = (hb[k] - ol[k]) * inv
-                    hi = np.maximum(ta, tb)
-                    tfar = hi if tfar is None else np.minimum(tfar, hi, out=tfar)
-                    if b:  # the room (box 0) only needs the exit distance
-                        lo = np.minimum(ta, tb, out=ta)
-                        tnear = lo if tnear is None else np.maximum(tnear, lo, out=tnear)
                 if b == 0:  # the room, seen from inside: every ray leaves it
-                    zbuf[:] = tfar
+                    zbuf[:] = _slab_hits(M, ol, hb, X, Y, exit_only=True)[1]
                     continue
-                if prims.rounded[b]:
-                    tnear, tfar = _ellipsoid_hits(M, ol, hb, X, Y)
+                tnear, tfar = (_ellipsoid_hits if prims.rounded[b] else _slab_hits)(M, ol, hb, X, Y)
                 zs = zbuf[r0:r1, c0:c1]
                 hit = (tnear <= tfar) & (tnear > NEAR) & (tnear < zs)
                 np.copyto(zs, tnear, where=hit)
@@ -205,6 +194,23 @@ class RayCaster:
             _round_gain(gain, prims, pid, L, light, o, D, t)
         albedo = cv2.remap(atlas_image, tx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return albedo * gain[..., None]
+
+
+def _slab_hits(M: np.ndarray, ol: np.ndarray, hb: np.ndarray, X: np.ndarray, Y: np.ndarray,
+               exit_only: bool = False) -> tuple[np.ndarray | None, np.ndarray]:
+    """(tnear, tfar) of the rays (X, Y, 1) with a box (its local ray matrix M, local origin ol, half extents hb) by
+    the slab test; tnear > tfar where a ray misses. `exit_only`: tfar alone (tnear None), for the room."""
+    tnear = tfar = None
+    for k in range(3):
+        inv = 1.0 / (M[k, 0] * X + M[k, 1] * Y + M[k, 2])
+        ta = (-hb[k] - ol[k]) * inv
+        tb = (hb[k] - ol[k]) * inv
+        hi = np.maximum(ta, tb)
+        tfar = hi if tfar is None else np.minimum(tfar, hi, out=tfar)
+        if not exit_only:
+            lo = np.minimum(ta, tb, out=ta)
+            tnear = lo if tnear is None else np.maximum(tnear, lo, out=tnear)
+    return tnear, tfar
 
 
 def _ellipsoid_hits(M: np.ndarray, ol: np.ndarray, hb: np.ndarray, X: np.ndarray,

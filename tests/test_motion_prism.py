@@ -9,7 +9,7 @@ from conftest import arc_camera, moved_front, silhouette, views_dataset
 from test_motion_edge import KEYS, K, H, W, off_deg, truth_states
 
 from interreal.dataset import known_states
-from interreal.motions.prism import measure_prism
+from interreal.motions.prism import judge, measure_prism
 
 # a drawer front 0.5 wide and 0.2 tall, z up, facing -y, wholly in view from 1.3 away (above it: its top shows)
 DRAWER = np.array([[-0.25, 0.0, 0.1], [0.25, 0.0, 0.1], [0.25, 0.0, -0.1], [-0.25, 0.0, -0.1]])
@@ -65,8 +65,6 @@ def test_no_keyframe_is_one_clear_reason():
 def test_a_front_pulled_out_in_every_frame_is_not_at_rest():
     """A front that explains the masks only pulled out in every frame (never back at rest) was not found where the
     drawer closes: refused, with the least pull named; the same front with frames at rest passes this check."""
-    from interreal.motions.prism import judge
-
     shown = list(range(10))
     iou = np.full(10, 0.9)
     leaf = np.full(10, 0.5)

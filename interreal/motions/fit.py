@@ -38,6 +38,8 @@ FLAG_TOL = 0.25  # a label further than this from the measured state is a likely
 LABEL_TOL = 0.15  # with trust_labels: the motion is refused when the labels' median disagreement exceeds this ...
 MAX_FLAGGED = 1 / 3  # ... or more than this share of the labels are flagged
 END_NEAR = 0.25  # labels of one value orient the motion only when all lie within this share of the span of one end
+UNLABELLED_END = "no label near it"  # how `end_state` says an end's state is the geometry's alone ...
+LABELS_LINE = "the labels' line"  # ... or the labels' guess, where no route measured the part further
 JUMP = FLAG_TOL  # a frame whose state leaves its neighbours' median by more than this is misregistered ...
 MAX_JUMPY = 1 / 3  # ... and a motion with more than this share of such frames is noise, not motion
 MAX_RESIDUAL = 0.25  # a motion whose positions miss the part's by more than this share of how far it moves the
@@ -390,26 +392,20 @@ def end_state(x: np.ndarray, y: np.ndarray, end: float, state: float) -> tuple[f
     `state` (0 closed, 1 open): `state`, unless the labels say otherwise and their robust line puts that end clearly
     short of it (a video that only opens a door half way, labelled so on purpose). What the labels say of an end is
     the median label of the frames measured there (within END_BAND of it), not any one label: one eyeballed 0.95 on
-    a half-open frame made fully open the end of a door that no route measured further than 0.64 (its open frames
-    turn the front away from every camera; simulator seed 4, labels off by up to 0.5: range 36 % short, now 24 %
-    long: eyeballed labels are all that scales it there). With no frame measured there, any label near `state`
-    says it."""
-    if not (np.abs(x - end) <= END_NEAR).any():
-        how = "the measured end (no label near it)"
-    else:
-        how = "labelled"
+    a half-open frame must not make fully open the end of a door no route measured further than 0.64 (its open
+    frames turn the front away from every camera). With no frame measured there, any label near `state` says it."""
+    how = f"the measured end ({UNLABELLED_END})" if not (np.abs(x - end) <= END_NEAR).any() else "labelled"
     there = np.abs(x - end) <= END_BAND
-    says = (abs(float(np.median(y[there])) - state) <= SNAP if there.any()
-            else bool((np.abs(y - state) <= SNAP).any()))
+    told = float(np.median(y[there])) if there.any() else None  # what the labels of the frames there say together
+    says = abs(told - state) <= SNAP if told is not None else bool((np.abs(y - state) <= SNAP).any())
     if says or len(x) < 2 or np.ptp(x) < END_NEAR:
         return state, how
     slope, icpt = robust_line(x, y)
     value = float(np.clip(icpt + slope * end, 0.0, 1.0))
     if abs(value - state) <= SNAP:
         return state, how
-    said = (f"the frames measured there are labelled {float(np.median(y[there])):.2f}" if there.any()
-            else f"no label says {state:g}")
-    return round(value, 3), f"the labels' line ({said})"
+    said = f"the frames measured there are labelled {told:.2f}" if told is not None else f"no label says {state:g}"
+    return round(value, 3), f"{LABELS_LINE} ({said})"
 
 
 def calibrate(d: np.ndarray, ok: np.ndarray, labels: np.ndarray, labelled: np.ndarray

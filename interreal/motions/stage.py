@@ -45,7 +45,7 @@ from ..report import StageReport, finished_with, fingerprint, read_report, warni
 from ..sfm import colmap
 from ..sfm.colmap import NativeLog
 from ..transients import excluded
-from .fit import FLAG_TOL, PartViews, fit_motion, part_point
+from .fit import FLAG_TOL, LABELS_LINE, UNLABELLED_END, PartViews, fit_motion, part_point
 from .pnp import pnp_views, reference_frames
 from .edge import measure_edge
 from .prism import measure_prism
@@ -296,13 +296,12 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
 def ends_warnings(name: str, fig: dict[str, Any]) -> list[tuple[str, str]]:
     """(text, cause) for each end of a used motion whose state the geometry alone did not give: an end with no
     label near it (taken as 0 or 1), and an end the labels' line placed short of it, where no route measured the
-    part further: its range is then the labels' guess (eyeballed labels off by 0.5 put a door 24-79 % off on the
-    simulator), so the person hears which labels to check."""
+    part further: its range is then the labels' guess, so the person hears which labels to check."""
     ends = fig.get("ends_from", "")
     out = []
-    if "no label near it" in ends:
+    if UNLABELLED_END in ends:
         out.append((f"'{name}': {ends}: label a frame at each end to be sure", "ends-from-geometry"))
-    if "the labels' line" in ends:
+    if LABELS_LINE in ends:
         out.append((f"'{name}': no route measured it further than the frames labelled there, so its range comes from "
                     f"the labels ({ends}): check the labels near that end, or film the part at its ends where it can "
                     f"be seen", "ends-from-labels"))

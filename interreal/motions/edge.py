@@ -8,20 +8,23 @@ is its outline, and one straight stretch of it stays in one place in the world w
    the one all keyframes agree on (along the hinge side, where a plain door meets its plain body, propagated
    outlines stray 2-5 px, and a line lifted with them is tens of degrees off); with one keyframe, its stretches
    are lifted to the line most frames' outlines agree with (`static_line`);
-2. `fit_leaf`: the door is a rectangle hinged on that line, `width` wide and spanning [h0, h1] along it, turned by
-   its own angle in each frame: the three sizes are those whose best silhouettes overlap the masks most on average
-   (Nelder-Mead from a grid; frames labelled at one end share one angle), then every frame's angle by dynamic
-   programming over the frames in time order (a door turns smoothly: a frame whose mask lost the door follows its
-   neighbours, not a guess from that mask); `judge`: bounds on the keyframes, a slide as the rival elsewhere;
-3. the angles are the displacement `fit.articulate` reads: the geometry measures, the labels only orient.
-Its limits: a drawer (nothing of it stays put) is left to the other routes; a thick door is a thin leaf here (ranges
-up to 10 % short at a 100 deg opening), and propagated masks put it 6-17 % off on some simulated captures
-(docs/measurements.md, 2026-12-05).
+2. `leaf.fit_leaf`: the door is a rectangle hinged on that line, `width` wide and spanning [h0, h1] along it,
+   turned by its own angle in each frame: the three sizes are those whose best silhouettes overlap the masks most
+   on average (Nelder-Mead from a grid; frames labelled at one end share one angle) on each of the best lines;
+   `leaf.refine_leaf` then moves the best line's two ends with the size and a thickness (a slab) until every
+   frame's best silhouette fits (a line a few px off turns the angles by 10-17 deg seen from close by);
+3. every frame's angle by dynamic programming over the frames in time order (a door turns smoothly: a frame whose
+   mask lost the door follows its neighbours, not a guess from that mask); `judge`: bounds on the keyframes, a
+   slide as the rival elsewhere;
+4. the angles are the displacement `fit.articulate` reads: the geometry measures, the labels only orient.
+Its limits: a drawer (nothing of it stays put) is left to the other routes; propagated masks that lose the open
+door leave its angles to the path's smoothness, and a slide explains them as well on some simulated captures
+(refused); a thick door filmed from the side its hinge edge faces hides that edge behind its own (no line stays
+within 3 px of the keyframes' outlines) (docs/measurements.md, 2026-12-06).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from itertools import permutations, product
 from typing import Any
 
@@ -31,6 +34,7 @@ from scipy.optimize import minimize
 
 from ..dataset import SAME_STATE, Articulation
 from .fit import Fit, articulate
+from .leaf import KEEP, Leaf, Line, fit_leaf, iou_curves, refine_leaf
 from .silhouette import Silhouettes, Views, views_of
 
 SIDE = 480            # outlines and final silhouettes are compared at most this large (long side) ...
@@ -38,7 +42,6 @@ SEARCH_SIDE = 240     # ... the leaf's size is searched on silhouettes this larg
 TRUNC_PX = 12.0       # an outline further than this (work-size px) from a projected point counts as this far
 ALONG = np.linspace(0.15, 0.85, 12)[:, None]  # where a candidate line is sampled: its ends may be corners shared
 #                                                with edges that move
-KEEP = 0.6            # the share of frames (best first) a candidate line is judged on: masks fail, hands cover
 SEGMENT_SHARE = 0.1   # straight stretches of an outline at least this share of the image diagonal
 MAX_LINE_PX = 3.0     # a hinge line further than this (work size, mean over the frames kept) from the outlines: none
 ANGLES = 144          # angle grid of a frame's search (2.5 deg), refined by a parabola
@@ -58,22 +61,6 @@ MIN_CONFIDENCE = 0.5  # frames whose mask the masks stage trusts less than this 
 #                       leaves it within a few frames of a keyframe, and the stage knows: 0.07-0.3 there)
 MIN_KEY_IOU = 0.8     # the keyframes' masks (exact) must be explained this well on average (a door's edge seen side
 #                       on widens its mask beyond its front's: 0.76 on one simulated keyframe with its true masks)
-
-
-@dataclass
-class Line:
-    """A 3D segment P -> Q (world), its mean outline distance (px) over the frames kept, and the keyframe it came
-    from."""
-
-    p: np.ndarray
-    q: np.ndarray
-    cost: float
-    key: int
-
-    @property
-    def axis(self) -> np.ndarray:
-        d = self.q - self.p
-        return d / np.linalg.norm(d)
 
 
 class Outlines:
@@ -270,30 +257,6 @@ def hinge_lines(views: Views, frames: list[int], keys: list[int]) -> tuple[list[
     return distinct, out
 
 
-class Leaf:
-    """A rectangle hinged on `line`: corners at angle phi about it (radians from the basis vector `b1`)."""
-
-    def __init__(self, line: Line):
-        self.line = line
-        a = line.axis
-        helper = np.eye(3)[int(np.argmin(np.abs(a)))]
-        self.b1 = np.cross(a, helper)
-        self.b1 /= np.linalg.norm(self.b1)
-        self.b2 = np.cross(a, self.b1)
-        self.length = float(np.linalg.norm(line.q - line.p))
-
-    def corners(self, width: float, h0: float, h1: float, phi: float) -> np.ndarray:
-        a, p = self.line.axis, self.line.p
-        lo, hi = p + h0 * self.length * a, p + h1 * self.length * a
-        out = width * self.length * (np.cos(phi) * self.b1 + np.sin(phi) * self.b2)
-        return np.array([lo, hi, hi + out, lo + out])
-
-
-def iou_curves(sil: Silhouettes, leaf: Leaf, size: np.ndarray, frames: list[int], angles: np.ndarray) -> np.ndarray:
-    """(F, A) overlap of each frame's mask with the leaf of `size` (width, h0, h1) at each angle."""
-    return np.array([[sil.iou(leaf.corners(*size, phi), i) for phi in angles] for i in frames])
-
-
 def smooth_path(curves: np.ndarray, angles: np.ndarray, still: np.ndarray | None = None) -> np.ndarray:
     """Grid positions (F,) maximising the summed overlap less `SMOOTH` per degree turned between neighbours
     (Viterbi over frames in order; angles wrap); `still` (F,): frame f and f-1 rest at one labelled state, where a
@@ -359,37 +322,6 @@ def refine(curve: np.ndarray, j: int, angles: np.ndarray) -> float:
     den = a - 2 * b + c
     shift = 0.5 * (a - c) / den if den < 0 else 0.0
     return float(angles[j] + np.clip(shift, -0.5, 0.5) * (angles[1] - angles[0]))
-
-
-def fit_leaf(sil: Silhouettes, line: Line, frames: list[int], keys: list[int],
-             ends: list[list[int]] | None = None) -> tuple[np.ndarray, float]:
-    """(width, h0, h1) of the leaf whose best silhouettes overlap the masks most, and that overlap: the keyframes'
-    mean (a person's masks), the best `KEEP` of at most 16 other frames (propagated masks lose a plain door on whole
-    stretches) and, for each of `ends` (the frames labelled closed, those labelled fully open), the best overlap
-    its frames share at one angle, in equal parts. Why the ends: where the door's top and bottom lie outside the
-    image, a wider leaf turned further casts the same silhouette in any one view; only views of one state from
-    different places pin its free edge. Widths and spans in lengths of the line's segment."""
-    leaf = Leaf(line)
-    coarse = np.linspace(-np.pi, np.pi, 36, endpoint=False)
-    groups = [g for g in (ends or []) if len(g) >= 2]
-    some = sorted(set(frames[::max(1, len(frames) // 16)]) - set(keys))
-
-    def score(size: np.ndarray) -> float:
-        if size[0] <= 0.05 or size[2] - size[1] < 0.2:
-            return 0.0
-        parts = [float(iou_curves(sil, leaf, size, keys, coarse).max(1).mean())]
-        if some:
-            rest = np.sort(iou_curves(sil, leaf, size, some, coarse).max(1))[::-1]
-            parts.append(float(rest[:max(1, int(KEEP * len(rest)))].mean()))
-        parts += [float(iou_curves(sil, leaf, size, g, coarse).mean(0).max()) for g in groups]
-        return float(np.mean(parts))
-
-    start = max((np.array([w, 0.0, 1.0]) for w in np.geomspace(0.1, 3.0, 12)), key=score)
-    start = max((start + np.array([0.0, lo, hi]) for lo in (0.0, -0.5) for hi in (0.0, 0.5)), key=score)
-    res = minimize(lambda x: -score(x), start, method="Nelder-Mead",
-                   options={"xatol": 1e-3, "fatol": 1e-4, "maxiter": 60,
-                            "initial_simplex": start + np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]])})
-    return res.x, -float(res.fun)
 
 
 def slide_rival(sil: Silhouettes, out: Outlines, leaf: Leaf, size: np.ndarray, frames: list[int], rest: float
@@ -506,8 +438,8 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
     still, (closed, opened) = label_ends(shown, states, known)
     ends = end_samples(shown, [closed, opened])
     best = max(((ln, *fit_leaf(coarse, ln, shown, keys, ends)) for ln in lines[:4]), key=lambda r: r[2])
-    line, size, mean_iou = best
-    leaf = Leaf(line)
+    line, size, thickness, _ = refine_leaf(coarse, best[0], best[1], shown, keys)
+    leaf = Leaf(line, thickness)
     angles = np.linspace(-np.pi, np.pi, ANGLES, endpoint=False)
     curves = iou_curves(sil, leaf, size, shown, angles)
     weight = np.array([KEY_WEIGHT if i in keys else 1.0 for i in shown])[:, None]  # a person drew those masks

@@ -5,7 +5,7 @@ cut or hidden as often as a door's. What its masks show is the prism the front s
 and top), and the front at rest has a straight edge that stays put (where it meets the cabinet): the edge route's
 hinge candidates. So:
 1. the front: for each candidate static line (`edge.hinge_lines`, from the keyframes' outlines), the leaf on it that
-   best covers the masks (`edge.fit_leaf`), at the angle most frames agree with (a front does not turn), then the
+   best covers the masks (`leaf.fit_leaf`), at the angle most frames agree with (a front does not turn), then the
    plane give or take 10 deg, which side it comes out on and how far in front of or behind the line it lies, by
    the overlap of each frame's best pull; each line's front then has its size, angle and shift refined (the
    leaf's size was fitted to a turning leaf, which an open drawer's top and sides bend);
@@ -29,6 +29,7 @@ from scipy.optimize import minimize
 from ..dataset import Articulation
 from . import edge
 from .fit import Fit
+from .leaf import Leaf, Line, fit_leaf, iou_curves
 from .silhouette import Silhouettes, Views
 
 REACH = np.linspace(0.0, 1.5, 61)  # pulls searched, in widths of the front
@@ -62,7 +63,7 @@ def pull_curves(sil: Silhouettes, front: Front, frames: list[int], reach: np.nda
     return np.array([[sil.iou(front.prism(r * front.width), i) for r in reach] for i in frames])
 
 
-def front_at(leaf: edge.Leaf, x: np.ndarray, sign: float) -> Front:
+def front_at(leaf: Leaf, x: np.ndarray, sign: float) -> Front:
     """The front of parameters x = (width, h0, h1 in lengths of the line, angle about it, shift along its normal
     in widths) on `leaf`'s line, coming out on the `sign` side."""
     base = leaf.corners(x[0], x[1], x[2], x[3])
@@ -84,7 +85,7 @@ def front_groups(frames: list[int], keys: list[int]) -> list[list[int]]:
     return [[k for k in keys if k in frames], sorted(set(frames[::max(1, len(frames) // SAMPLE)]) - set(keys))]
 
 
-def grid_front(sil: Silhouettes, leaf: edge.Leaf, size: np.ndarray, rest: float, groups: list[list[int]]
+def grid_front(sil: Silhouettes, leaf: Leaf, size: np.ndarray, rest: float, groups: list[list[int]]
                ) -> tuple[float, np.ndarray, float]:
     """(score, parameters, side) of the best front around the leaf of `size` at angle `rest`: tilted, shifted,
     coming out on either side (`front_at`), scored by `front_score` on `groups`."""
@@ -99,7 +100,7 @@ def grid_front(sil: Silhouettes, leaf: edge.Leaf, size: np.ndarray, rest: float,
     return best
 
 
-def refine_front(sil: Silhouettes, leaf: edge.Leaf, x0: np.ndarray, sign: float, groups: list[list[int]]
+def refine_front(sil: Silhouettes, leaf: Leaf, x0: np.ndarray, sign: float, groups: list[list[int]]
                  ) -> tuple[Front, float]:
     """The front's size, angle and shift refined from `x0` (the leaf's size was fitted to a turning leaf, which an
     open drawer's top and sides bend), and its score."""
@@ -111,17 +112,17 @@ def refine_front(sil: Silhouettes, leaf: edge.Leaf, x0: np.ndarray, sign: float,
     return front, front_score(sil, front, groups)
 
 
-def resting_angle(sil: Silhouettes, leaf: edge.Leaf, size: np.ndarray, frames: list[int]) -> float:
+def resting_angle(sil: Silhouettes, leaf: Leaf, size: np.ndarray, frames: list[int]) -> float:
     """The leaf's angle the frames agree on most (their summed overlap): a front slides, it does not turn."""
     angles = np.linspace(-np.pi, np.pi, 72, endpoint=False)
     some = frames[::max(1, len(frames) // SAMPLE)]
-    return float(angles[int(np.argmax(edge.iou_curves(sil, leaf, size, some, angles).sum(0)))])
+    return float(angles[int(np.argmax(iou_curves(sil, leaf, size, some, angles).sum(0)))])
 
 
 def find_front(views: Views, frames: list[int], keys: list[int], coarse: Silhouettes, ends: list[list[int]]
-               ) -> tuple[Front | None, list[tuple[edge.Leaf, np.ndarray]], dict[str, Any]]:
+               ) -> tuple[Front | None, list[tuple[Leaf, np.ndarray]], dict[str, Any]]:
     """The best front over the best static lines of the keyframes' outlines (`edge.hinge_lines`), or None and why;
-    and the leaves fitted on those lines (`edge.fit_leaf`: the door each line would hinge), the slide's rivals."""
+    and the leaves fitted on those lines (`leaf.fit_leaf`: the door each line would hinge), the slide's rivals."""
     lines, _ = edge.hinge_lines(views, frames, keys)
     fig: dict[str, Any] = {"prism_lines": [round(ln.cost, 2) for ln in lines[:4]]}
     lines = [ln for ln in lines if ln.cost <= edge.MAX_LINE_PX]
@@ -134,8 +135,8 @@ def find_front(views: Views, frames: list[int], keys: list[int], coarse: Silhoue
     groups = front_groups(shown, keys)
     leaves, grids = [], []
     for ln in lines[:4]:  # the front on each line searched on a grid, then refined
-        leaf = edge.Leaf(ln)
-        size, _ = edge.fit_leaf(coarse, ln, shown, keys, ends)
+        leaf = Leaf(ln)
+        size, _ = fit_leaf(coarse, ln, shown, keys, ends)
         leaves.append((leaf, size))
         grids.append(grid_front(coarse, leaf, size, resting_angle(coarse, leaf, size, shown), groups))
     front, score = max((refine_front(coarse, leaf, g[1], g[2], groups) for (leaf, _), g in zip(leaves, grids)),
@@ -153,12 +154,12 @@ def pull_path(curves: np.ndarray, width: float, still: np.ndarray, ends: list[np
                      for f, j in enumerate(path)])
 
 
-def turning_leaf(sil: Silhouettes, leaf: edge.Leaf, size: np.ndarray, shown: list[int], weight: np.ndarray,
+def turning_leaf(sil: Silhouettes, leaf: Leaf, size: np.ndarray, shown: list[int], weight: np.ndarray,
                  still: np.ndarray, ends: list[np.ndarray]) -> np.ndarray:
     """(F,) each frame's overlap by `leaf` of `size` turning as the edge route follows it (smoothly, the frames
     labelled at one end at one angle)."""
     angles = np.linspace(-np.pi, np.pi, edge.ANGLES // 2, endpoint=False)
-    turns = edge.iou_curves(sil, leaf, size, shown, angles)
+    turns = iou_curves(sil, leaf, size, shown, angles)
     path = edge.anchored_path(turns * weight, angles, still, ends)
     return turns[np.arange(len(shown)), path]
 
@@ -209,7 +210,7 @@ def prism_motion(views: Views, frames: list[int], keys: list[int], states: np.nd
     weight = np.array([edge.KEY_WEIGHT if i in keys else 1.0 for i in shown])[:, None]
     pulls = pull_path(curves * weight, front.width, still, ends)
     iou = np.array([sil.iou(front.prism(p), i) for p, i in zip(pulls, shown)])
-    own = edge.Leaf(edge.Line(front.corners[0], front.corners[1], 0.0, keys[0]))
+    own = Leaf(Line(front.corners[0], front.corners[1], 0.0, keys[0]))
     leaves.append((own, np.array([np.linalg.norm(front.corners[3] - front.corners[0]) / own.length, 0.0, 1.0])))
     leaf_best = np.max([turning_leaf(coarse, leaf, size, shown, weight, still, ends) for leaf, size in leaves], axis=0)
     reason = judge(fig, shown, pulls, iou, keys, leaf_best)

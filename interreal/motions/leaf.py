@@ -1,0 +1,157 @@
+"""The leaf a door or lid turns: a slab hinged on a 3D line, its size fitted to the masks, then the line, size and
+thickness refined together on every frame's best angle.
+
+`edge` finds the line (the one straight stretch of the keyframes' outlines that stays put) and `prism` uses a leaf
+on it as the door a drawer's slide must beat; both read the leaf from here. The line is triangulated from two
+keyframes' outlines, a few pixels off where a plain door meets its plain body; seen from close by, 3 cm and 1 deg
+off the hinge turns every frame's best angle 10-17 deg (a half-open door read at 0.3 of its range where it is at
+0.45, simulated plain captures), so `refine_leaf` moves the line's two ends with the leaf's size and thickness until
+the frames' best silhouettes overlap their masks most.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize
+
+from .silhouette import Silhouettes
+
+KEEP = 0.6            # the share of frames (best first) a fit is judged on: masks fail, hands cover
+REFINE_FRAMES = 20    # about this many frames besides the keyframes refine the leaf (spread over the video)
+REFINE_STEPS = 120    # Nelder-Mead steps a round; three rounds, each frame's angle re-centred between them
+LOCAL = np.radians(np.arange(-6.0, 6.1, 1.5))  # each frame's angle searched this near its last best in a round
+STEP = 0.01           # the refinement's unit: the line's ends and span move in hundredths of its length, the width
+#                       and thickness in hundredths of the width
+THICK_STARTS = (0.0, 8.0, -8.0)  # thicknesses (hundredths of the width) the refinement starts from, on either side:
+#                                  a door is 2-10 % as thick as it is wide
+
+
+@dataclass
+class Line:
+    """A 3D segment P -> Q (world), its mean outline distance (px) over the frames kept, and the keyframe it came
+    from."""
+
+    p: np.ndarray
+    q: np.ndarray
+    cost: float
+    key: int
+
+    @property
+    def axis(self) -> np.ndarray:
+        d = self.q - self.p
+        return d / np.linalg.norm(d)
+
+
+class Leaf:
+    """A slab hinged on `line`: its front's corners at angle phi about it (radians from the basis vector `b1`), and
+    `thickness` (in widths; its sign the side) behind them. Why a slab: seen from its side, an open door's edge
+    widens its silhouette, and a thin leaf fitted there turns too little (a 6 cm thick door read 10-18 % short)."""
+
+    def __init__(self, line: Line, thickness: float = 0.0):
+        self.line = line
+        self.thickness = thickness
+        a = line.axis
+        helper = np.eye(3)[int(np.argmin(np.abs(a)))]
+        self.b1 = np.cross(a, helper)
+        self.b1 /= np.linalg.norm(self.b1)
+        self.b2 = np.cross(a, self.b1)
+        self.length = float(np.linalg.norm(line.q - line.p))
+
+    def corners(self, width: float, h0: float, h1: float, phi: float) -> np.ndarray:
+        a, p = self.line.axis, self.line.p
+        lo, hi = p + h0 * self.length * a, p + h1 * self.length * a
+        out = width * self.length * (np.cos(phi) * self.b1 + np.sin(phi) * self.b2)
+        front = np.array([lo, hi, hi + out, lo + out])
+        if not self.thickness:
+            return front
+        back = self.thickness * width * self.length * (np.cos(phi) * self.b2 - np.sin(phi) * self.b1)  # axis x out
+        return np.concatenate([front, front + back])
+
+
+def iou_curves(sil: Silhouettes, leaf: Leaf, size: np.ndarray, frames: list[int], angles: np.ndarray) -> np.ndarray:
+    """(F, A) overlap of each frame's mask with the leaf of `size` (width, h0, h1) at each angle."""
+    return np.array([[sil.iou(leaf.corners(*size, phi), i) for phi in angles] for i in frames])
+
+
+def fit_leaf(sil: Silhouettes, line: Line, frames: list[int], keys: list[int],
+             ends: list[list[int]] | None = None) -> tuple[np.ndarray, float]:
+    """(width, h0, h1) of the leaf whose best silhouettes overlap the masks most, and that overlap: the keyframes'
+    mean (a person's masks), the best `KEEP` of at most 16 other frames (propagated masks lose a plain door on whole
+    stretches) and, for each of `ends` (the frames labelled closed, those labelled fully open), the best overlap
+    its frames share at one angle, in equal parts. Why the ends: where the door's top and bottom lie outside the
+    image, a wider leaf turned further casts the same silhouette in any one view; only views of one state from
+    different places pin its free edge. Widths and spans in lengths of the line's segment."""
+    leaf = Leaf(line)
+    coarse = np.linspace(-np.pi, np.pi, 36, endpoint=False)
+    groups = [g for g in (ends or []) if len(g) >= 2]
+    some = sorted(set(frames[::max(1, len(frames) // 16)]) - set(keys))
+
+    def score(size: np.ndarray) -> float:
+        if size[0] <= 0.05 or size[2] - size[1] < 0.2:
+            return 0.0
+        parts = [float(iou_curves(sil, leaf, size, keys, coarse).max(1).mean())]
+        if some:
+            rest = np.sort(iou_curves(sil, leaf, size, some, coarse).max(1))[::-1]
+            parts.append(float(rest[:max(1, int(KEEP * len(rest)))].mean()))
+        parts += [float(iou_curves(sil, leaf, size, g, coarse).mean(0).max()) for g in groups]
+        return float(np.mean(parts))
+
+    start = max((np.array([w, 0.0, 1.0]) for w in np.geomspace(0.1, 3.0, 12)), key=score)
+    start = max((start + np.array([0.0, lo, hi]) for lo in (0.0, -0.5) for hi in (0.0, 0.5)), key=score)
+    res = minimize(lambda x: -score(x), start, method="Nelder-Mead",
+                   options={"xatol": 1e-3, "fatol": 1e-4, "maxiter": 60,
+                            "initial_simplex": start + np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]])})
+    return res.x, -float(res.fun)
+
+
+def _moved(line: Line, leaf: Leaf, x: np.ndarray) -> Line:
+    """`line` with its ends moved x[0:2] and x[2:4] (`STEP`s of its length) across it, along `leaf`'s b1 and b2."""
+    d = STEP * leaf.length
+    return Line(line.p + d * (x[0] * leaf.b1 + x[1] * leaf.b2), line.q + d * (x[2] * leaf.b1 + x[3] * leaf.b2),
+                line.cost, line.key)
+
+
+def _resized(size: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """`size` (width, h0, h1) with the width scaled by 1 + x[4] `STEP`s and the span's ends moved x[5], x[6]."""
+    return size * np.array([1.0 + STEP * x[4], 1.0, 1.0]) + STEP * np.array([0.0, x[5], x[6]])
+
+
+def refine_leaf(sil: Silhouettes, line: Line, size: np.ndarray, frames: list[int], keys: list[int]
+                ) -> tuple[Line, np.ndarray, float, float]:
+    """(line, size, thickness, overlap) of the slab whose best silhouettes overlap the masks most: the line's two
+    ends moved across it, the width, span and thickness with them, each frame's angle re-maximised near its last
+    best. Scored as `fit_leaf` scores (the keyframes' mean and the best `KEEP` of the other frames, in equal parts);
+    the thin leaf as it came where nothing scores better."""
+    leaf = Leaf(line)
+    others = sorted(set(frames[::max(1, len(frames) // REFINE_FRAMES)]) - set(keys))
+    some = [k for k in keys if k in frames] + others
+    grid = np.linspace(-np.pi, np.pi, 72, endpoint=False)
+    phis = grid[iou_curves(sil, leaf, size, some, grid).argmax(1)]
+
+    def score(x: np.ndarray, phis: np.ndarray) -> tuple[float, np.ndarray]:
+        sz = _resized(size, x)
+        if sz[0] <= 0.05 or sz[2] - sz[1] < 0.2:
+            return 0.0, phis
+        slab = Leaf(_moved(line, leaf, x), STEP * x[7])
+        vals = np.array([[sil.iou(slab.corners(*sz, p + d), i) for d in LOCAL] for i, p in zip(some, phis)])
+        best = vals.max(1)
+        n = len(some) - len(others)
+        rest = np.sort(best[n:])[::-1][:max(1, int(KEEP * len(others)))]
+        parts = [best[:n].mean()] if n else []
+        parts += [rest.mean()] if len(others) else []
+        return float(np.mean(parts)), phis + LOCAL[vals.argmax(1)]
+
+    start = score(np.zeros(8), phis)[0]
+    x = max((np.r_[np.zeros(7), t] for t in THICK_STARTS), key=lambda z: score(z, phis)[0])
+    for _ in range(3):
+        res = minimize(lambda z: -score(z, phis)[0], x, method="Nelder-Mead",
+                       options={"maxiter": REFINE_STEPS, "xatol": 0.05, "fatol": 1e-4,
+                                "initial_simplex": x + np.vstack([np.zeros(8), 1.5 * np.eye(8)])})
+        x = res.x
+        phis = score(x, phis)[1]
+    end = score(x, phis)[0]
+    if end <= start:
+        return line, size, 0.0, start
+    return _moved(line, leaf, x), _resized(size, x), STEP * float(x[7]), end

@@ -47,7 +47,8 @@ class Line:
 class Leaf:
     """A slab hinged on `line`: its front's corners at angle phi about it (radians from the basis vector `b1`), and
     `thickness` (in widths; its sign the side) behind them. Why a slab: seen from its side, an open door's edge
-    widens its silhouette, and a thin leaf fitted there turns too little (a 6 cm thick door read 10-18 % short)."""
+    widens its silhouette, and a thin leaf fitted there turns too little (on the true hinge, a simulated 6 cm
+    thick door read 5 deg short at 45 and at 100 deg)."""
 
     def __init__(self, line: Line, thickness: float = 0.0):
         self.line = line

@@ -76,6 +76,15 @@ def iou_curves(sil: Silhouettes, leaf: Leaf, size: np.ndarray, frames: list[int]
     return np.array([[sil.iou(leaf.corners(*size, phi), i) for phi in angles] for i in frames])
 
 
+def halves(keyed: np.ndarray, rest: np.ndarray) -> list[float]:
+    """The keyframes' mean overlap (a person's masks) and the mean of the best `KEEP` of the other frames' (propagated
+    masks lose a plain door on whole stretches), each where there are any: what a leaf's fit is scored on."""
+    parts = [float(keyed.mean())] if len(keyed) else []
+    if len(rest):
+        parts.append(float(np.sort(rest)[::-1][:max(1, int(KEEP * len(rest)))].mean()))
+    return parts
+
+
 def fit_leaf(sil: Silhouettes, line: Line, frames: list[int], keys: list[int],
              ends: list[list[int]] | None = None) -> tuple[np.ndarray, float]:
     """(width, h0, h1) of the leaf whose best silhouettes overlap the masks most, and that overlap: the keyframes'
@@ -92,10 +101,8 @@ def fit_leaf(sil: Silhouettes, line: Line, frames: list[int], keys: list[int],
     def score(size: np.ndarray) -> float:
         if size[0] <= 0.05 or size[2] - size[1] < 0.2:
             return 0.0
-        parts = [float(iou_curves(sil, leaf, size, keys, coarse).max(1).mean())]
-        if some:
-            rest = np.sort(iou_curves(sil, leaf, size, some, coarse).max(1))[::-1]
-            parts.append(float(rest[:max(1, int(KEEP * len(rest)))].mean()))
+        parts = halves(iou_curves(sil, leaf, size, keys, coarse).max(1),
+                       iou_curves(sil, leaf, size, some, coarse).max(1) if some else np.zeros(0))
         parts += [float(iou_curves(sil, leaf, size, g, coarse).mean(0).max()) for g in groups]
         return float(np.mean(parts))
 
@@ -128,6 +135,7 @@ def refine_leaf(sil: Silhouettes, line: Line, size: np.ndarray, frames: list[int
     leaf = Leaf(line)
     others = sorted(set(frames[::max(1, len(frames) // REFINE_FRAMES)]) - set(keys))
     some = [k for k in keys if k in frames] + others
+    n = len(some) - len(others)  # the keyframes lead
     grid = np.linspace(-np.pi, np.pi, 72, endpoint=False)
     phis = grid[iou_curves(sil, leaf, size, some, grid).argmax(1)]
 
@@ -138,11 +146,7 @@ def refine_leaf(sil: Silhouettes, line: Line, size: np.ndarray, frames: list[int
         slab = Leaf(_moved(line, leaf, x), STEP * x[7])
         vals = np.array([[sil.iou(slab.corners(*sz, p + d), i) for d in LOCAL] for i, p in zip(some, phis)])
         best = vals.max(1)
-        n = len(some) - len(others)
-        rest = np.sort(best[n:])[::-1][:max(1, int(KEEP * len(others)))]
-        parts = [best[:n].mean()] if n else []
-        parts += [rest.mean()] if len(others) else []
-        return float(np.mean(parts)), phis + LOCAL[vals.argmax(1)]
+        return float(np.mean(halves(best[:n], best[n:]))), phis + LOCAL[vals.argmax(1)]
 
     start = score(np.zeros(8), phis)[0]
     x = max((np.r_[np.zeros(7), t] for t in THICK_STARTS), key=lambda z: score(z, phis)[0])

@@ -105,6 +105,20 @@ def test_the_leaf_refined_with_its_line_finds_a_thick_doors_hinge_and_thickness(
     assert after > before + 0.04 and after > 0.95, (before, after)
 
 
+def test_the_refinement_also_starts_behind_a_line_on_the_slabs_back_edge():
+    """Where a cabinet's edge hides a thick door's hinge, the keyframes' outlines agree on a line a slab's thickness
+    behind it (a simulated fridge door: 5.4 cm). Descending from the line as it came stops 5 cm short; the second
+    descent, from the line moved a thickness across itself, ends within 1.5 cm of the hinge."""
+    ds, *_ = capture("hinge", thick=0.06, arc_from=0.0)
+    frames = list(range(N))
+    sil = Silhouettes(views_of(ds, 0), frames, SEARCH_SIDE)
+    back = Line(TALL[0] + [0.0, 0.06, 0.0], TALL[3] + [0.0, 0.06, 0.0], 0.0, 0)
+    line, fitted, thickness, _ = refine_leaf(sil, back, np.array([0.25, 0.0, 1.0]), frames, KEYS)
+    for end, hinge in ((line.p, TALL[0]), (line.q, TALL[3])):
+        assert np.linalg.norm((end - hinge)[:2]) < 0.015, (end, hinge)
+    assert 0.05 < abs(thickness) < 0.2, thickness
+
+
 def test_an_arm_in_front_of_the_door_is_no_evidence_against_the_leaf(tmp_path: Path):
     ds, truth, st, kn, labelled, _ = capture("hinge", root=tmp_path, arm=True)
     motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)

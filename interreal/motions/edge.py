@@ -58,9 +58,8 @@ SLIDE_MARGIN = 0.05   # ... and overlapping those masks this much more than the 
 #                       0.44-0.70 of the slide's outline distance (one 0.89), -0.01 to +0.14 in overlap; drawers
 #                       0.73-1.8; with the simulator's masks one drawer as a flap 0.69 and +0.03. Chosen on those seeds.
 REFINE_MARGIN = 0.05  # the lines whose thin leaf fits within this of the best one's are refined (at most
-REFINED = 2           # this many, 15-45 s each), the best refined kept: the refinement gains 0.03-0.05 in overlap,
-#                       and a line 3 cm off the hinge can trail the door's free edge before it (a user's six
-#                       keyframes, simulated plain door: 0.819 against 0.842, refined 0.868 against 0.846)
+REFINED = 2           # this many), the best refined kept: refining gains 0.03-0.05 in overlap, so a line a few cm
+#                       off the hinge can trail a wrong one (the door's free edge) until both are refined
 KEY_WEIGHT = 5.0      # a keyframe's overlap counts this many frames' in the dynamic programming
 MIN_CONFIDENCE = 0.5  # frames whose mask the masks stage trusts less than this are left out (a plain door's mask
 #                       leaves it within a few frames of a keyframe, and the stage knows: 0.07-0.3 there)
@@ -217,7 +216,7 @@ def key_cost(on_keys: np.ndarray, pair: list[int]) -> float:
     """A line's mean distance (NaN: not seen) to the keyframes' outlines, the two it was triangulated from (`pair`,
     positions into `on_keys`) counted as they are and of the others the best `KEEP` share (at least one): with more
     keyframes come more where an arm or the door's own thickness hides the hinge's edge (a door open past 90 deg
-    shows its back face's edge there, 10 px off on simulated fridge doors)."""
+    shows its back face's edge there)."""
     others = np.sort([d for n, d in enumerate(on_keys) if n not in pair and np.isfinite(d)])
     kept = np.r_[on_keys[[n for n in pair if np.isfinite(on_keys[n])]], others[:int(np.ceil(KEEP * len(others)))]]
     return float(kept.mean())
@@ -453,8 +452,8 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
     still, (closed, opened) = label_ends(shown, states, known)
     ends = end_samples(shown, [closed, opened])
     fits = sorted(((ln, *fit_leaf(coarse, ln, shown, keys, ends)) for ln in lines[:4]), key=lambda r: -r[2])
-    line, size, thickness, _ = max((refine_leaf(coarse, ln, size, shown, keys) for ln, size, score in fits[:REFINED]
-                                    if score >= fits[0][2] - REFINE_MARGIN), key=lambda r: r[3])
+    line, size, thickness, _ = max((refine_leaf(coarse, ln, sz, shown, keys) for ln, sz, fit in fits[:REFINED]
+                                    if fit >= fits[0][2] - REFINE_MARGIN), key=lambda r: r[3])
     leaf = Leaf(line, thickness)
     angles = np.linspace(-np.pi, np.pi, ANGLES, endpoint=False)
     curves = iou_curves(sil, leaf, size, shown, angles)

@@ -28,9 +28,7 @@ THICK_STARTS = (0.0, 8.0, -8.0)  # thicknesses (hundredths of the width) the ref
 #                                  a door is 2-10 % as thick as it is wide. It descends twice: from the line as it
 #                                  came, and from the line moved that far across itself (the best of four ways):
 #                                  where the cabinet's edge hides a door's hinge, the keyframes' outlines agree on
-#                                  that edge (a simulated fridge door: 0.03 px, 5.4 cm behind the hinge), and the
-#                                  descent from there stopped 4.7 cm short (from behind: 1.4 cm, overlap 0.969
-#                                  against 0.964)
+#                                  that edge, a thickness behind the hinge, and one descent from there stops short
 
 
 @dataclass

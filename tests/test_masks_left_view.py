@@ -13,17 +13,21 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+from concurrent.futures import Future
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
 
 from interreal.conventions import fid_of_index
 from interreal.masks import MasksConfig
+from interreal.masks import health as H
 from interreal.masks import main as masks_main
 from interreal.masks.appearance import AppearanceConfig, quantize
 from interreal.masks.redetect import RedetectConfig, Redetector, border_sides, outflow, reach_from_sides
 from interreal.masks.soft import anchor_soft
+from interreal.masks.verdict import Cues, left_view
 from interreal.process import stage_summary
 from interreal.report import read_report
 from test_masks import make_ds, write_keys
@@ -186,3 +190,48 @@ def test_process_says_which_objects_left_the_view(tmp_path: Path):
         "frames": 48, "keyframes": ["frame_00000"], "left_view": {"door": "frame_00026-frame_00047", "drawer": ""}}}))
     text = stage_summary(tmp_path, "masks")
     assert "door: out of the view at frames frame_00026-frame_00047" in text and "drawer" not in text
+
+
+def _labels_with(boxes: list[tuple[int, int, int, int] | None], w: int = 320, h: int = 240) -> list[np.ndarray]:
+    out = []
+    for b in boxes:
+        lab = np.zeros((h, w), np.uint8)
+        if b is not None:
+            x0, y0, x1, y1 = b
+            lab[y0:y1, x0:x1] = 1
+        out.append(lab)
+    return out
+
+
+def _left_of(boxes: list[tuple[int, int, int, int] | None], lost: tuple[int, int]) -> list[tuple[int, int]]:
+    """`left_view` on one object whose mask is a box per frame (None: empty), lost over the frames `lost`."""
+    n = len(boxes)
+    cues = Cues(n, 1)
+    for i, lab in enumerate(_labels_with(boxes)):
+        ref = SimpleNamespace(area=np.array([(lab == 1).mean()]), centroid=np.zeros((1, 2)), thin=np.zeros(1))
+        done: Future = Future()
+        done.set_result({i: ref})
+        cues.add(SimpleNamespace(pos=i, labels=lab, keyframe=True), None, done)
+    state = np.zeros((n, 1), int)
+    state[lost[0]:lost[1] + 1] = H.STATES.index("lost")
+    hl = H.Health(np.ones((n, 1)), state, np.zeros((n, 1, len(H.FEATURES))),
+                  {st: [H.ranges(np.flatnonzero(state[:, 0] == j))] for j, st in enumerate(H.STATES)})
+    is_key = np.zeros(n, bool)
+    is_key[[0, n - 1]] = True
+    left, _ = left_view(hl, cues, 1, is_key, [], np.full((n, 1), 0.2))
+    return left.get(0, [])
+
+
+def test_a_tall_door_cut_by_the_border_that_swings_open_and_is_lost_is_not_out_of_the_view():
+    """`--hard` seed 4's fridge door: cut by the top and bottom border all along, its mask moving off the left
+    border as it swings open, then lost for 30 frames while it covers 9-41 % of each frame. It was taken for out
+    of the view (masks blanked, confidence 1, no keyframe asked for) because its masks beside the stretch touch
+    the border; they do not shrink into a side (they reach from top to bottom), so it is lost."""
+    swing = [(0, 0, 150 + 10 * i, 240) for i in range(8)] + [None] * 6 + [(0, 0, 200 - 5 * i, 240) for i in range(6)]
+    assert _left_of(swing, (8, 13)) == []
+    # the same stretch where the masks beside shrink into the left side (the camera turned away and back): out
+    pan = [(0, 40, 160 - 20 * i, 200) for i in range(8)] + [None] * 6 + [(0, 40, 20 + 20 * i, 200) for i in range(6)]
+    assert _left_of(pan, (8, 13)) == [(8, 13)]
+    # ... and where it shrinks into the side before the stretch but comes back mid-view after it: lost
+    back = pan[:14] + [(120, 40, 200, 200)] * 6
+    assert _left_of(back, (8, 13)) == []

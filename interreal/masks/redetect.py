@@ -298,15 +298,15 @@ def outflow(labels: np.ndarray, flow: np.ndarray, n_objects: int) -> np.ndarray:
     return out
 
 
-def reach_from_sides(mask: np.ndarray) -> np.ndarray:
-    """(4,) how far a (non-empty) mask reaches from the image's left, top, right and bottom side: the 90th
+def reach_from_sides(mask: np.ndarray, share: float = 0.9) -> np.ndarray:
+    """(4,) how far a (non-empty) mask reaches from the image's left, top, right and bottom side: the `share`
     percentile of its pixels' distances to each (a few stray pixels do not count)."""
     h, w = mask.shape
     out = np.zeros(4)
     for i, (line, n) in enumerate(((mask.sum(0), w), (mask.sum(1), h))):  # pixels per column, per row
         cum = np.cumsum(line)
-        out[i] = np.searchsorted(cum, 0.9 * cum[-1])                # from the left / top side
-        out[i + 2] = n - 1 - np.searchsorted(cum, 0.1 * cum[-1])    # from the right / bottom side
+        out[i] = np.searchsorted(cum, share * cum[-1])                      # from the left / top side
+        out[i + 2] = n - 1 - np.searchsorted(cum, (1 - share) * cum[-1])    # from the right / bottom side
     return out
 
 

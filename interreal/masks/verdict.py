@@ -20,7 +20,7 @@ from ..conventions import mask_file
 from ..transients import read_transient
 from . import health as H
 from .confidence import keyframe_reach, next_keyframes, reach_suggestion
-from .redetect import Event, RedetectConfig
+from .redetect import Event, RedetectConfig, reach_from_sides
 from .soft import argmax_labels
 from .track import Propagator
 
@@ -28,6 +28,7 @@ from .track import Propagator
 # IoU of the worst object): 0.05-0.09 -> 0.89-0.94 (DAVIS every 10th frame, simulated captures at normal speed);
 # 0.135 -> 0.84 (3x camera speed); 0.25-0.27 -> 0.74-0.80; DAVIS first frame only: 0.49 -> 0.91, 0.54 -> 0.81.
 MAX_REACH = 0.10
+REACH_SHARE = 0.99  # a mask's far edge from a side: the 99th percentile of its pixels (`Cues.reach`)
 
 
 class Cues:
@@ -45,6 +46,9 @@ class Cues:
         self.border = np.zeros((n, k), bool)  # the mask reaches the image border (`health.touches_border`)
         # ... and which sides (left, top, right, bottom) it reaches within `border_band` (`redetect.border_sides`)
         self.sides = np.zeros((n, k, 4), bool)
+        # ... and how far it reaches from each side, in long sides of the image (NaN where it reaches none or was
+        # not measured): its far edge from the side, not where most of it lies (a door turning changes that)
+        self.reach = np.full((n, k, 4), np.nan)
 
     def rows(self, frames: list[int]) -> dict[str, np.ndarray]:
         """Every cue's rows of these frames, by name (`reuse` stores them with the frames' labels)."""
@@ -66,6 +70,8 @@ class Cues:
         strips = [np.unique(x) for x in (lab[:, :band], lab[:band], lab[:, -band:], lab[-band:])]
         for k in range(self.sides.shape[1]):
             self.sides[pos, k] = [k + 1 in x for x in strips]  # as `redetect.border_sides`, from the strips alone
+            if self.sides[pos, k].any():
+                self.reach[pos, k] = reach_from_sides(lab == k + 1, REACH_SHARE) / max(lab.shape)
         if res.keyframe:
             self.area[pos], self.centroid[pos], self.thin[pos] = key_refs[pos].area, key_refs[pos].centroid, \
                 key_refs[pos].thin
@@ -158,16 +164,16 @@ def left_view(hl: H.Health, cues: Cues, n_obj: int, is_key: np.ndarray, exits: l
     stage blanks: after an exit the chain measured, all; in a lost stretch, those whose mask is a remnant (under
     `health.LOST_AREA` of the area `ref` (n, K) the keyframes give), not one lost by its colours alone.
 
-    A lost stretch is out of the view when its mask beside it (a frame that is not lost) reaches the image border
-    and inside it is empty or still at the border, shrinking out: the keyframes around show the object, but the
-    camera turned away between them. A mask that shrank into a side before a lost stretch is not enough: a plain
-    door cut by the border whose mask collapses while it stays in view does that too (a false 'out of the view'
-    hides a failure, a false 'lost' asks for a keyframe). And where a chain no keyframe corrects saw the object
-    leave over a side of
-    the image (`exits`: most of what its mask lost went out there, `redetect`), the object is out of the view from
-    the first frame its mask is lost or off that side until it reaches that side again (it comes back over the
-    border it left by) or a keyframe: a mask in mid-view there is a look-alike the chain moved to (a door that
-    swung out of the view given to the rim of the cabinet of its colour), not the object."""
+    A lost stretch is out of the view when its masks beside it (the frames that are not lost) reach the image
+    border, each on its way out over a side (`heads_out`: into the stretch, or back from it), and inside it is empty
+    or still at the border: the keyframes around show the object, but the camera turned away between them (or the
+    part left the view itself). A mask at the border is not enough: a tall plain door is cut by it all along, and
+    where its mask collapses while it stays in view a false 'out of the view' hides a failure (blanked masks
+    trusted), where a false 'lost' asks for a keyframe. And where a chain no keyframe corrects saw the object
+    leave over a side of the image (`exits`: most of what its mask lost went out there, `redetect`), the object is
+    out of the view from the first frame its mask is lost or off that side until it reaches that side again (it
+    comes back over the border it left by) or a keyframe: a mask in mid-view there is a look-alike the chain moved
+    to (a door that swung out of the view given to the rim of the cabinet of its colour), not the object."""
     lost = H.STATES.index("lost")
     n = len(cues.area)
     keys = np.flatnonzero(is_key)
@@ -176,8 +182,9 @@ def left_view(hl: H.Health, cues: Cues, n_obj: int, is_key: np.ndarray, exits: l
     for k in range(min(n_obj, cues.area.shape[1])):
         taken, wipe = [], set()
         for a, b in hl.stretches["lost"][k]:
-            beside = [i for i in (a - 1, b + 1) if 0 <= i < n and hl.state[i, k] != lost]
-            if any(cues.border[i, k] for i in beside) and \
+            beside = [(i, d) for i, d in ((a - 1, -1), (b + 1, 1)) if 0 <= i < n and hl.state[i, k] != lost]
+            if beside and all(cues.border[i, k] and heads_out(cues, hl.state[:, k] != lost, k, i, d)
+                              for i, d in beside) and \
                     all(cues.area[i, k] <= 0 or cues.border[i, k] for i in range(a, b + 1)):
                 taken.append((a, b))
                 wipe |= {i for i in range(a, b + 1) if cues.area[i, k] < H.LOST_AREA * ref[i, k]}
@@ -196,6 +203,24 @@ def left_view(hl: H.Health, cues: Cues, n_obj: int, is_key: np.ndarray, exits: l
         for st, runs in hl.stretches.items():  # frames out of the view are in no other state
             runs[k] = H.ranges(np.flatnonzero(hl.state[:, k] == H.STATES.index(st)))
     return out, blank
+
+
+def heads_out(cues: Cues, held: np.ndarray, k: int, i: int, away: int) -> bool:
+    """Whether object k's mask on frame i, beside a stretch where it is lost, is on its way out over a side it
+    reaches: over the `RedetectConfig.window` frames from i in the direction `away` where it was held (`held`
+    (n,): not lost), both its area and its reach from such a side shrank, the reach by more than the band a mask
+    counts at a side within (`border_band`). A mask that leaves the view shrinks into the side it leaves by; a
+    tall door that swings open while cut by the top and bottom border does not, and where its chain lost it the
+    stretch is a loss to annotate. True with no such frame measured (a run reused from before the reach was kept)."""
+    sides = cues.sides[i, k]
+    now = cues.reach[i, k]
+    frames = [j for j in range(i + away, i + away * (RedetectConfig.window + 1), away)
+              if 0 <= j < len(held) and held[j] and cues.area[j, k] > 0 and not np.isnan(cues.reach[j, k]).any()]
+    if not sides.any() or np.isnan(now).any() or not frames:
+        return bool(sides.any())
+    before = np.nanmax(cues.reach[frames, k], axis=0)
+    shrank = sides & (before - now > RedetectConfig.smooth)
+    return bool(shrank.any() and cues.area[i, k] < max(cues.area[j, k] for j in frames))
 
 
 def _out_after(hl: H.Health, cues: Cues, k: int, gone: Event, step: int,

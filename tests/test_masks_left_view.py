@@ -224,9 +224,9 @@ def _left_of(boxes: list[tuple[int, int, int, int] | None], lost: tuple[int, int
 
 def test_a_tall_door_cut_by_the_border_that_swings_open_and_is_lost_is_not_out_of_the_view():
     """`--hard` seed 4's fridge door: cut by the top and bottom border all along, its mask moving off the left
-    border as it swings open, then lost for 30 frames while it covers 9-41 % of each frame. It was taken for out
-    of the view (masks blanked, confidence 1, no keyframe asked for) because its masks beside the stretch touch
-    the border; they do not shrink into a side (they reach from top to bottom), so it is lost."""
+    border as it swings open, then lost for 30 frames while it covers 9-41 % of each frame. Its masks beside the
+    stretch touch the border but do not shrink into a side (they reach from top to bottom): lost, not out of the
+    view (which would blank its masks at confidence 1 and ask for no keyframe)."""
     swing = [(0, 0, 150 + 10 * i, 240) for i in range(8)] + [None] * 6 + [(0, 0, 200 - 5 * i, 240) for i in range(6)]
     assert _left_of(swing, (8, 13)) == []
     # the same stretch where the masks beside shrink into the left side (the camera turned away and back): out

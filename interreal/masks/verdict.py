@@ -212,12 +212,13 @@ def heads_out(cues: Cues, held: np.ndarray, k: int, i: int, away: int) -> bool:
     counts at a side within (`border_band`). A mask that leaves the view shrinks into the side it leaves by; a
     tall door that swings open while cut by the top and bottom border does not, and where its chain lost it the
     stretch is a loss to annotate. True with no such frame measured (a run reused from before the reach was kept)."""
-    sides = cues.sides[i, k]
-    now = cues.reach[i, k]
+    sides, now = cues.sides[i, k], cues.reach[i, k]
+    if not sides.any():
+        return False
     frames = [j for j in range(i + away, i + away * (RedetectConfig.window + 1), away)
               if 0 <= j < len(held) and held[j] and cues.area[j, k] > 0 and not np.isnan(cues.reach[j, k]).any()]
-    if not sides.any() or np.isnan(now).any() or not frames:
-        return bool(sides.any())
+    if np.isnan(now).any() or not frames:
+        return True
     before = np.nanmax(cues.reach[frames, k], axis=0)
     shrank = sides & (before - now > RedetectConfig.smooth)
     return bool(shrank.any() and cues.area[i, k] < max(cues.area[j, k] for j in frames))

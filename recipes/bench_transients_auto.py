@@ -11,8 +11,9 @@ gaps, the GrabCut growth). Worst frame first.
 
 `--synth SEEDS`: the same on simulated captures with an arm in front of the parts (`--hard` as `bench_motions.py`
 makes them, 960x720, 90 frames, no person walking: every occluder pixel is the hand or its sleeve), against the
-simulator's exact occluder masks over every frame the arm shows in, and over those where the hand model found a hand
-(what growing makes of a found hand, apart from finding it). Per seed, worst first.
+simulator's exact occluder masks over every frame the arm shows in, over those where the hand model found a hand
+(what growing makes of a found hand, apart from finding it) and over those it carried the layer to by the flow (the
+masks stage's `carry`). Per seed, worst first.
 
     python recipes/bench_transients_auto.py --out bench/
     python recipes/bench_transients_auto.py --synth 1,2,3 --out bench/
@@ -29,6 +30,7 @@ import numpy as np
 
 from benchlib import REPO, bench_args, print_table, write_results
 
+from interreal.masks.carry import carry_layer
 from interreal.paths import require_shared
 from interreal.synth.config import SynthConfig
 from interreal.synth.render import OCCLUDER
@@ -90,7 +92,8 @@ def main() -> None:
     frames = read_video(video, full)
     decode_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    layer = propose(lambda p: frames[p], len(frames), full, progress=True)
+    layer = carry_layer(propose(lambda p: frames[p], len(frames), full, progress=True), lambda p: frames[p],
+                        len(frames))
     total_s = time.perf_counter() - t0
     runs, tiles = [], []
     for fid in fixture["frames"]:
@@ -117,7 +120,7 @@ def main() -> None:
         "mean_iou_all": _mean(r["iou_all"] for r in runs),
         "worst_iou_all": min((r["iou_all"] or 0.0) for r in runs),
         "max_static_taken": max(r["static_taken"] for r in runs),
-        "layer_frames": len(layer.masks), "leaked_frames": len(layer.leaked),
+        "layer_frames": len(layer.masks), "carried_frames": len(layer.carried), "leaked_frames": len(layer.leaked),
         "seconds": {**layer.seconds, "decode": round(decode_s, 3), "total": round(total_s, 3)},
         "ms_per_frame": round(1000 * total_s / max(len(frames), 1), 1)}
     write_results(args.out, "transients_auto", runs, summary=summary)
@@ -135,9 +138,10 @@ def synth(args, seeds: list[int]) -> None:
         frames = [scene.render_frame(t) for t in range(scene.cfg.frames)]
         size = (scene.cfg.width, scene.cfg.height)
         t0 = time.perf_counter()
-        layer = propose(lambda p: frames[p].rgb, len(frames), size, progress=True)
+        layer = carry_layer(propose(lambda p: frames[p].rgb, len(frames), size, progress=True),
+                            lambda p: frames[p].rgb, len(frames))
         total_s = time.perf_counter() - t0
-        ious, taken, found = [], [], []
+        ious, taken, found, carried = [], [], [], []
         for pos, f in enumerate(frames):
             inst = cv2.resize(f.instance, layer.work_size, interpolation=cv2.INTER_NEAREST)
             arm, static = inst == OCCLUDER, inst == 0
@@ -147,8 +151,12 @@ def synth(args, seeds: list[int]) -> None:
                 ious.append(iou(got, arm) or 0.0)
                 if len(layer.track.hands[pos]):
                     found.append(ious[-1])
+                elif pos in layer.carried:
+                    carried.append(ious[-1])
         runs.append({"seed": seed, "arm_frames": len(ious), "hands_found": round(layer.track.found_share(), 3),
+                     "carried": round(len(layer.carried) / len(frames), 3),
                      "mean_iou_hand_arm": _mean(ious), "iou_where_found": _mean(found),
+                     "iou_where_carried": _mean(carried),
                      "worst_decile_iou": round(float(np.percentile(ious, 10)), 3),
                      "mean_static_taken": round(float(np.mean(taken)), 5), "max_static_taken": round(max(taken), 5),
                      "seconds": round(total_s, 1)})

@@ -136,12 +136,14 @@ def test_the_auto_layer_is_kept_for_the_same_frames(tmp_path):
     m = np.zeros((6, 10), bool)
     m[1:4, 2:7] = True
     hands = [np.zeros((0, 21, 2)), np.arange(42, dtype=float).reshape(1, 21, 2) / 3, np.zeros((0, 21, 2))]
-    layer = AutoLayer({1: m}, (10, 6), HandTrack(hands, ["", "tracked", ""], {"tracking": 0.5}), [1], {"grow": 0.1})
+    layer = AutoLayer({1: m, 2: m}, (10, 6), HandTrack(hands, ["", "tracked", ""], {"tracking": 0.5}), [1],
+                      {"grow": 0.1}, carried=[2])
     path = tmp_path / "layer.npz"
     save_layer(path, "k1", layer)
     back = load_layer(path, "k1")
-    assert back is not None and sorted(back.masks) == [1] and np.array_equal(back.masks[1], m)
+    assert back is not None and sorted(back.masks) == [1, 2] and np.array_equal(back.masks[1], m)
     assert back.work_size == (10, 6) and back.leaked == [1] and back.seconds == {"grow": 0.1}
+    assert back.carried == [2]  # frames the masks stage carried the layer to (`masks.carry`)
     assert back.track.how == layer.track.how and back.track.found_share() == pytest.approx(1 / 3)
     assert all(np.array_equal(a, b) for a, b in zip(back.track.hands, hands, strict=True))
     assert load_layer(path, "another key") is None  # other frames (or other code): made again

@@ -22,6 +22,7 @@ from ..errors import InputError
 from ..layout import MASKS_CACHE_DIR, PREVIEWS_DIR, SFM_MASKS_DIR, TRANSIENTS_CACHE_FILE
 from ..report import StageReport, files_fingerprint, finished_with, fingerprint, tree_fingerprint
 from ..options import config_from
+from .carry import SETTINGS as CARRY_SETTINGS, carry_layer
 from .config import PREVIEW_KINDS, MasksConfig
 from .confidence import reach_suggestion
 from . import health as H
@@ -181,13 +182,14 @@ def _auto_layer(rep: StageReport, job: _Job, auto: bool, no_model: str | None, p
     """`--transients auto`'s layer (the last run's when the frames are the same: it depends on no keyframe), or
     the one line on why there is none."""
     if auto:
-        key, cache = layer_key(job.images), job.ds / TRANSIENTS_CACHE_FILE
+        key, cache = fingerprint(layer_key(job.images), "carried", CARRY_SETTINGS), job.ds / TRANSIENTS_CACHE_FILE
         layer = load_layer(cache, key) if reuse else None
         if layer is not None:
             rep.steps["transients_auto"] = {**layer.seconds, "reused": True}
             return layer
         with rep.step("transients_auto") as st:
-            layer = propose(job.load, len(job.fids), job.size, progress=progress)
+            layer = carry_layer(propose(job.load, len(job.fids), job.size, progress=progress), job.load,
+                                len(job.fids))
             st.update(layer.seconds)
         if reuse:
             try:
@@ -489,7 +491,7 @@ def auto_figures(layer: AutoLayer | None, fids: list[str], mode: str, no_model: 
     if layer is None:
         return {"mode": mode, "ran": False, **({"why_not": no_model} if no_model else {})}
     return {"mode": mode, "ran": True, "hands_found": round(layer.track.found_share(), 4),
-            "found_by": shares(layer.track), "frames": len(layer.masks),
+            "found_by": shares(layer.track), "frames": len(layer.masks), "carried": len(layer.carried),
             "leaked": [fids[p] for p in layer.leaked], "seconds": layer.seconds}
 
 
@@ -504,7 +506,8 @@ def transient_line(figures: dict[str, Any]) -> str | None:
     if tr.get("ignore_keyframes"):
         how.append(f"painted on {len(tr['ignore_keyframes'])} keyframes")
     if auto.get("ran"):
-        how.append(f"auto: a hand found on {100 * auto['hands_found']:.0f} % of the frames")
+        carried = f", carried by the flow to {auto['carried']} more" if auto.get("carried") else ""
+        how.append(f"auto: a hand found on {100 * auto['hands_found']:.0f} % of the frames{carried}")
     return (f"transients: {tr.get('frames', 0)} frames, {100 * tr.get('mean_share', 0.0):.1f} % of the pixels on "
             f"average (at most {100 * tr.get('max_share', 0.0):.0f} %)" + (f" ({'; '.join(how)})" if how else ""))
 

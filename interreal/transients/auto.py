@@ -12,8 +12,8 @@ out when the layer is written (a part in motion is not a transient).
 
 Measured against careful hand-and-arm polygons of the shared laptop video (`recipes/bench_transients_auto.py`): the
 hull alone 0.03-0.46 IoU, grown 0.78-0.91; on simulated captures with a sleeved arm (`--synth`), grown with the
-forearm turned by the frame 0.354 mean IoU over seeds 1-10 (straight on: 0.235), most of the rest frames where the
-model finds no hand. A person standing in view with no hand in sight (legs at
+forearm turned by the frame 0.354 mean IoU over seeds 1-10 (straight on: 0.235), 0.419 once the masks stage carries
+it into the frames where the model finds no hand (`masks.carry`), most of the rest those frames still. A person standing in view with no hand in sight (legs at
 the image edge) is not found: the pose model's person mask fires on too few frames of such videos to seed it.
 """
 
@@ -60,6 +60,7 @@ class AutoLayer:
     track: HandTrack
     leaked: list[int] = field(default_factory=list)  # frames where growing leaked (the hull was kept)
     seconds: dict[str, float] = field(default_factory=dict)
+    carried: list[int] = field(default_factory=list)  # frames with no hand found, their mask carried from others
 
     def full(self, pos: int, size: tuple[int, int]) -> np.ndarray | None:
         """Frame `pos`'s mask at `size` (w, h), None when the layer has nothing there."""
@@ -80,7 +81,8 @@ def save_layer(path: Path, key: str, layer: AutoLayer) -> None:
     pos = sorted(layer.masks)
     stack = np.stack([layer.masks[p] for p in pos]) if pos else np.zeros((0, layer.work_size[1], layer.work_size[0]))
     hands = [np.asarray(h, np.float64).reshape(-1, 21, 2) for h in layer.track.hands]
-    meta = {"key": key, "work_size": list(layer.work_size), "leaked": layer.leaked, "seconds": layer.seconds,
+    meta = {"key": key, "work_size": list(layer.work_size), "leaked": layer.leaked, "carried": layer.carried,
+            "seconds": layer.seconds,
             "how": layer.track.how, "track_seconds": layer.track.seconds}
     with atomic.atomic_open(path) as fh:
         np.savez_compressed(fh, meta=np.array(json.dumps(meta)), pos=np.array(pos, np.int64),
@@ -103,7 +105,8 @@ def load_layer(path: Path, key: str) -> AutoLayer | None:
     except (OSError, ValueError, KeyError):
         return None
     track = HandTrack([np.asarray(x, np.float64) for x in hands], meta["how"], meta["track_seconds"])
-    return AutoLayer(dict(zip(pos, masks)), (w, h), track, meta["leaked"], meta["seconds"])
+    return AutoLayer(dict(zip(pos, masks)), (w, h), track, meta["leaked"], meta["seconds"],
+                     meta.get("carried", []))
 
 
 def work_size(size: tuple[int, int], long_side: int = WORK_LONG_SIDE) -> tuple[int, int]:

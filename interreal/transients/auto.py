@@ -11,7 +11,7 @@ reach and its surroundings is hand, arm or sleeve, kept only where connected to 
 out when the layer is written (a part in motion is not a transient).
 
 Measured against careful hand-and-arm polygons of the shared laptop video (`recipes/bench_transients_auto.py`): the
-hull alone 0.03-0.46 IoU, grown 0.78-0.91; on simulated captures with a sleeved arm (`--synth`), grown with the
+hull alone 0.03-0.46 IoU, grown 0.77-0.88; on simulated captures with a sleeved arm (`--synth`), grown with the
 forearm turned by the frame 0.354 mean IoU over seeds 1-10 (straight on: 0.235), 0.419 once the masks stage carries
 it into the frames where the model finds no hand (`masks.carry`), most of the rest those frames still. A person standing in view with no hand in sight (legs at
 the image edge) is not found: the pose model's person mask fires on too few frames of such videos to seed it.
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -49,6 +50,7 @@ MIN_SPINE = 10  # spine points in view to judge a direction by
 GRABCUT_ITERS = 2
 ROUNDS = 3  # GrabCuts at most, each from the last one's region (an arm that bends leaves the band: the next follows)
 SETTLED = 0.05  # ... stopping once the region changes by less than this share of its area
+GROW_THREADS = 2  # frames grown at once: GrabCut lets go of Python's lock, so a second core halves the growth's time
 
 
 @dataclass
@@ -116,38 +118,43 @@ def work_size(size: tuple[int, int], long_side: int = WORK_LONG_SIDE) -> tuple[i
 
 def propose(load: Callable[[int], np.ndarray], n: int, size: tuple[int, int], *, progress: bool = False,
             clock: Callable[[], float] = time.perf_counter) -> AutoLayer:
-    """The auto layer of frames 0..n-1 of size `size` (w, h); `load(pos)` -> RGB uint8. Needs the hand model
-    (`hands.model_problem()` is None)."""
+    """The auto layer of frames 0..n-1 of size `size` (w, h); `load(pos)` -> RGB uint8 (called from `GROW_THREADS`
+    threads at once). Needs the hand model (`hands.model_problem()` is None)."""
     wsize = work_size(size)
     last: dict[int, np.ndarray] = {}
 
     def full(pos: int) -> np.ndarray:
-        if pos not in last:  # frames are read in order, twice at most (the static pass, then growing): keep one
+        if pos not in last:  # the hand model reads the frames in order, twice at most: keep one
             last.clear()
             last[pos] = load(pos)
         return last[pos]
 
-    def small(pos: int) -> np.ndarray:
-        img = full(pos)
-        return img if (img.shape[1], img.shape[0]) == wsize else cv2.resize(img, wsize, interpolation=cv2.INTER_AREA)
-
     # the hand model on the full frames (a hand far away is a few pixels at the work size); landmarks to work pixels
     track = find_hands(full, n, progress=progress, clock=clock)
+    last.clear()
     scale = np.array([wsize[0] / size[0], wsize[1] / size[1]])
     track.hands = [h * scale for h in track.hands]
+    t0 = clock()
+
+    def one(pos: int) -> tuple[int, np.ndarray, bool]:
+        img = load(pos)
+        img = img if (img.shape[1], img.shape[0]) == wsize else cv2.resize(img, wsize, interpolation=cv2.INTER_AREA)
+        core, reach = seeds(track.hands[pos], (wsize[1], wsize[0]), img)
+        grown = grow_rounds(img, core, reach)
+        if grown.mean() > MAX_SHARE:
+            return pos, hulls(track.hands[pos], (wsize[1], wsize[0])), True
+        return pos, grown, False
+
     masks: dict[int, np.ndarray] = {}
     leaked: list[int] = []
-    t0 = clock()
-    for pos in tqdm(range(n), desc="transients", unit="frame", disable=not progress):
-        if not len(track.hands[pos]):
-            continue
-        core, reach = seeds(track.hands[pos], (wsize[1], wsize[0]), small(pos))
-        grown = grow_rounds(small(pos), core, reach)
-        if grown.mean() > MAX_SHARE:
-            leaked.append(pos)
-            grown = hulls(track.hands[pos], (wsize[1], wsize[0]))
-        if grown.any():
-            masks[pos] = grown
+    todo = [pos for pos in range(n) if len(track.hands[pos])]
+    with ThreadPoolExecutor(GROW_THREADS, thread_name_prefix="grow") as pool:
+        for pos, grown, leak in tqdm(pool.map(one, todo), total=len(todo), desc="transients", unit="frame",
+                                     disable=not progress):
+            if leak:
+                leaked.append(pos)
+            if grown.any():
+                masks[pos] = grown
     return AutoLayer(masks, wsize, track, leaked, {**track.seconds, "grow": round(clock() - t0, 3)})
 
 
@@ -278,6 +285,7 @@ def grow(img: np.ndarray, core: np.ndarray, reach: np.ndarray, iters: int = GRAB
     if not (label == cv2.GC_BGD).any() and not (label == cv2.GC_PR_BGD).any():
         return reach.copy()  # nothing left to learn the background from (the reach is the whole box)
     bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+    cv2.setRNGSeed(0)  # its colour models start from a k-means: the same frame grows alike on any thread, in any order
     cv2.grabCut(np.ascontiguousarray(img[box]), label, None, bgd, fgd, iters, cv2.GC_INIT_WITH_MASK)
     fg = ((label == cv2.GC_FGD) | (label == cv2.GC_PR_FGD)).astype(np.uint8)
     n, comp = cv2.connectedComponents(fg)

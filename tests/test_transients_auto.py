@@ -198,6 +198,31 @@ def test_grow_follows_a_sleeve_of_another_colour_to_the_image_edge():
     assert not got[180:230].any()  # not the shelf
 
 
+def test_growth_is_the_same_on_any_thread_in_any_order():
+    """`propose` grows frames on `GROW_THREADS` threads: GrabCut's k-means start is seeded, so a frame grows alike
+    whichever thread takes it and whatever it cut before (OpenCV's random state is per thread)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    rng = np.random.default_rng(1)
+    frames = []
+    for k in range(4):
+        img = rng.integers(60, 200, (120, 160, 3)).astype(np.uint8)
+        cv2.circle(img, (80 + 5 * k, 60), 12, (225, 180, 160), -1)
+        cv2.rectangle(img, (75 + 5 * k, 0), (85 + 5 * k, 50), (40, 160, 60), -1)
+        frames.append(img)
+    hands = [_hand((80 + 5 * k, 50), (0, 1), 12)[None] for k in range(4)]
+
+    def one(k: int) -> np.ndarray:
+        core, reach = A.seeds(hands[k], (120, 160))
+        return A.grow_rounds(frames[k], core, reach)
+
+    alone = [one(k) for k in range(4)]
+    assert all(m.any() for m in alone)
+    with ThreadPoolExecutor(2) as pool:
+        threaded = list(pool.map(one, [3, 1, 2, 0, 3, 1]))
+    assert all(np.array_equal(m, alone[k]) for m, k in zip(threaded, [3, 1, 2, 0, 3, 1]))
+
+
 def test_fill_gaps_interpolates_short_gaps_only():
     a, b = _hand((10, 10), (0, 1), 10)[None], _hand((30, 10), (0, 1), 10)[None]
     empty = np.zeros((0, 21, 2))

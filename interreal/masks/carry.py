@@ -20,7 +20,7 @@ import numpy as np
 
 from ..transients.auto import AutoLayer
 from .appearance import quantize
-from .flow import FlowConfig, FlowEngine, make_step, sampling_grid
+from .flow import FlowConfig, FlowEngine, sampling_grid
 from .soft import disk
 
 CARRY_FRAMES = 12  # frames a found layer is carried on, each way: the hand model's gaps last 5-20 frames
@@ -59,11 +59,11 @@ def carry_layer(layer: AutoLayer, load: Callable[[int], np.ndarray], n: int,
                                                                                   interpolation=cv2.INTER_AREA)
         return cache[pos]
 
-    engine, grid, cfg = FlowEngine(FlowConfig()), sampling_grid(wsize[1], wsize[0]), FlowConfig()
+    engine, grid = FlowEngine(FlowConfig()), sampling_grid(wsize[1], wsize[0])
     carried: list[int] = []
     for a, b in stretches(found):
         sources = [(s, step) for s, step in ((a - 1, 1), (b + 1, -1)) if 0 <= s < n and found[s]]
-        reach = {s: _pulled(layer.masks[s], s, step, a, b, small, engine, grid, cfg) for s, step in sources}
+        reach = {s: _pulled(layer.masks[s], s, step, a, b, small, engine, grid) for s, step in sources}
         tables = {s: layer_colours(small(s), layer.masks[s]) for s, _ in sources}
         for pos in range(a, b + 1):
             got = [(s, reach[s][pos]) for s, _ in sources if pos in reach[s]]
@@ -85,9 +85,10 @@ def carry_layer(layer: AutoLayer, load: Callable[[int], np.ndarray], n: int,
 
 
 def _pulled(mask: np.ndarray, src: int, step: int, a: int, b: int, small: Callable[[int], np.ndarray],
-            engine: FlowEngine, grid: tuple[np.ndarray, np.ndarray], cfg: FlowConfig) -> dict[int, np.ndarray]:
+            engine: FlowEngine, grid: tuple[np.ndarray, np.ndarray]) -> dict[int, np.ndarray]:
     """Frame -> the layer of frame `src` pulled there by the flow, frame by frame in the direction `step`, over the
-    stretch a..b and at most `CARRY_FRAMES` frames; (H, W) float32 in [0, 1]."""
+    stretch a..b and at most `CARRY_FRAMES` frames; (H, W) float32 in [0, 1]. The flow's forward-backward trust is
+    not weighed in: a sleeve's plain inside is untrusted flow, and the carry faded out within a few frames."""
     out: dict[int, np.ndarray] = {}
     value = mask.astype(np.float32)
     prev = src
@@ -95,8 +96,8 @@ def _pulled(mask: np.ndarray, src: int, step: int, a: int, b: int, small: Callab
         if abs(pos - src) > CARRY_FRAMES:
             break
         pull = engine(small(pos), small(prev))  # per pixel of pos: where it came from in prev
-        push = engine(small(prev), small(pos))
-        value = make_step(pull, push, grid, cfg).warp(value)
+        value = cv2.remap(value, grid[0] + pull[..., 0], grid[1] + pull[..., 1], cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
         if not (value > KEEP).any():
             break
         out[pos] = value

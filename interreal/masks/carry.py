@@ -18,7 +18,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from ..transients.auto import AutoLayer
+from ..transients.auto import AutoLayer, at_size
 from .appearance import quantize
 from .flow import FlowConfig, FlowEngine, sampling_grid
 from .soft import disk
@@ -54,9 +54,7 @@ def carry_layer(layer: AutoLayer, load: Callable[[int], np.ndarray], n: int,
 
     def small(pos: int) -> np.ndarray:
         if pos not in cache:
-            img = load(pos)
-            cache[pos] = img if (img.shape[1], img.shape[0]) == wsize else cv2.resize(img, wsize,
-                                                                                  interpolation=cv2.INTER_AREA)
+            cache[pos] = at_size(load(pos), wsize)
         return cache[pos]
 
     engine, grid = FlowEngine(FlowConfig()), sampling_grid(wsize[1], wsize[0])
@@ -69,10 +67,11 @@ def carry_layer(layer: AutoLayer, load: Callable[[int], np.ndarray], n: int,
             got = [(s, reach[s][pos]) for s, _ in sources if pos in reach[s]]
             if not got:
                 continue
-            weights = [1.0 / abs(pos - s) for s, _ in got]
-            value = sum(w * m for w, (_, m) in zip(weights, got)) / sum(weights)
+            weights = np.array([1.0 / abs(pos - s) for s, _ in got])
+            weights /= weights.sum()
             bins = quantize(small(pos), BINS)
-            colour = sum(w * tables[s][bins] for w, (s, _) in zip(weights, got)) / sum(weights)
+            value = sum(w * m for w, (_, m) in zip(weights, got))
+            colour = sum(w * tables[s][bins] for w, (s, _) in zip(weights, got))
             mask = (value > KEEP) & (colour > 0.5)
             if int(mask.sum()) >= MIN_PIXELS:
                 layer.masks[pos] = mask

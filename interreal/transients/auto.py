@@ -12,9 +12,10 @@ out when the layer is written (a part in motion is not a transient).
 
 Measured against careful hand-and-arm polygons of the shared laptop video (`recipes/bench_transients_auto.py`): the
 hull alone 0.03-0.46 IoU, grown 0.77-0.88; on simulated captures with a sleeved arm (`--synth`), grown with the
-forearm turned by the frame 0.354 mean IoU over seeds 1-10 (straight on: 0.235), 0.419 once the masks stage carries
-it into the frames where the model finds no hand (`masks.carry`), most of the rest those frames still. A person standing in view with no hand in sight (legs at
-the image edge) is not found: the pose model's person mask fires on too few frames of such videos to seed it.
+forearm turned by the frame 0.354 mean IoU over seeds 1-10 (straight on: 0.235), 0.418 once the masks stage carries
+it into the frames where the model finds no hand (`masks.carry`); most of what is left is the sleeve. A person
+standing in view with no hand in sight (legs at the image edge) is not found: the pose model's person mask fires on
+too few frames of such videos to seed it.
 """
 
 from __future__ import annotations
@@ -84,8 +85,7 @@ def save_layer(path: Path, key: str, layer: AutoLayer) -> None:
     stack = np.stack([layer.masks[p] for p in pos]) if pos else np.zeros((0, layer.work_size[1], layer.work_size[0]))
     hands = [np.asarray(h, np.float64).reshape(-1, 21, 2) for h in layer.track.hands]
     meta = {"key": key, "work_size": list(layer.work_size), "leaked": layer.leaked, "carried": layer.carried,
-            "seconds": layer.seconds,
-            "how": layer.track.how, "track_seconds": layer.track.seconds}
+            "seconds": layer.seconds, "how": layer.track.how, "track_seconds": layer.track.seconds}
     with atomic.atomic_open(path) as fh:
         np.savez_compressed(fh, meta=np.array(json.dumps(meta)), pos=np.array(pos, np.int64),
                             masks=np.packbits(stack.astype(bool), axis=-1), counts=np.array([len(h) for h in hands]),
@@ -116,6 +116,11 @@ def work_size(size: tuple[int, int], long_side: int = WORK_LONG_SIDE) -> tuple[i
     return max(1, round(size[0] * s)), max(1, round(size[1] * s))
 
 
+def at_size(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """`img` resized to `size` (w, h) by area (a frame at the layer's work size); as it is when it has that size."""
+    return img if (img.shape[1], img.shape[0]) == size else cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+
+
 def propose(load: Callable[[int], np.ndarray], n: int, size: tuple[int, int], *, progress: bool = False,
             clock: Callable[[], float] = time.perf_counter) -> AutoLayer:
     """The auto layer of frames 0..n-1 of size `size` (w, h); `load(pos)` -> RGB uint8 (called from `GROW_THREADS`
@@ -137,8 +142,7 @@ def propose(load: Callable[[int], np.ndarray], n: int, size: tuple[int, int], *,
     t0 = clock()
 
     def one(pos: int) -> tuple[int, np.ndarray, bool]:
-        img = load(pos)
-        img = img if (img.shape[1], img.shape[0]) == wsize else cv2.resize(img, wsize, interpolation=cv2.INTER_AREA)
+        img = at_size(load(pos), wsize)
         core, reach = seeds(track.hands[pos], (wsize[1], wsize[0]), img)
         grown = grow_rounds(img, core, reach)
         if grown.mean() > MAX_SHARE:

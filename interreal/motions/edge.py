@@ -15,8 +15,10 @@ is its outline, and one straight stretch of it stays in one place in the world w
    a thickness (a slab) until every frame's best silhouette fits (a line a few px off turns the angles by 10-17 deg
    seen from close by, and can trail a wrong line before it is refined);
 3. every frame's angle by dynamic programming over the frames in time order (a door turns smoothly: a frame whose
-   mask lost the door follows its neighbours, not a guess from that mask); `judge`: bounds on the keyframes, a
-   slide as the rival elsewhere;
+   mask lost the door follows its neighbours, not a guess from that mask); the frames the masks stage lost are read
+   by their colours (`colour`) and steer the path without measuring a state: the door closed seen from the side
+   pins the closed angle that a frontal view cut by the border leaves free over tens of degrees; `judge`: bounds
+   on the keyframes, a slide as the rival elsewhere;
 4. the angles are the displacement `fit.articulate` reads: the geometry measures, the labels only orient.
 Its limits: a drawer (nothing of it stays put) is left to the other routes; propagated masks that lose the open
 door leave its angles to the path's smoothness, and a slide explains them as well on some simulated captures
@@ -34,6 +36,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ..dataset import SAME_STATE, Articulation
+from .colour import SWEEP, ColourSilhouettes
 from .fit import Fit, articulate
 from .leaf import KEEP, Leaf, Line, fit_leaf, iou_curves, refine_leaf
 from .silhouette import Silhouettes, Views, views_of
@@ -456,32 +459,43 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
                                     if fit >= fits[0][2] - REFINE_MARGIN), key=lambda r: r[3])
     leaf = Leaf(line, thickness)
     angles = np.linspace(-np.pi, np.pi, ANGLES, endpoint=False)
-    curves = iou_curves(sil, leaf, size, shown, angles)
-    weight = np.array([KEY_WEIGHT if i in keys else 1.0 for i in shown])[:, None]  # a person drew those masks
+    lost = [i for i in range(len(views.masks)) if i not in sil.crop] if views.images is not None else []
+    every = sorted(shown + lost)
+    colour = ColourSilhouettes(views, sil, keys, [leaf.corners(*size, a) for a in SWEEP]) if lost else None
+    by_mask = iou_curves(sil, leaf, size, shown, angles)
+    curves = np.zeros((len(every), len(angles)))
+    read = np.isin(every, shown)
+    curves[read] = by_mask
+    if colour is not None:
+        curves[~read] = iou_curves(colour, leaf, size, lost, angles)
+        fig["edge_read_by_colour"] = len(lost)
+    still, (closed, opened) = label_ends(every, states, known)
+    weight = np.array([KEY_WEIGHT if i in keys else 1.0 for i in every])[:, None]  # a person drew those masks
     path = anchored_path(curves * weight, angles, still, [closed, opened])
     phi = np.array([refine(curves[f], j, angles) for f, j in enumerate(path)])
-    iou = curves[np.arange(len(shown)), path]
+    iou = curves[np.arange(len(every)), path]
     unwrapped = np.unwrap(phi)
     rest = float(np.median(unwrapped[closed if closed.any() else still if still.any() else slice(0, 1)]))
-    reason = judge(fig, coarse, out, leaf, size, shown, unwrapped, rest, keys)
+    reason = judge(fig, coarse, out, leaf, size, shown, unwrapped[read], rest, keys)
     if reason:
         fig["edge_reason"] = reason
         return None, fig
-    key_iou = [float(v) for i, v in zip(shown, iou) if i in keys]
+    key_iou = [float(v) for i, v in zip(every, iou) if i in keys]
     fig.update(edge_line_px=round(line.cost, 2), edge_leaf=[round(float(v), 3) for v in size],
-               edge_mean_iou=round(float(iou.mean()), 3), edge_key_iou=[round(v, 3) for v in key_iou])
+               edge_mean_iou=round(float(iou[read].mean()), 3), edge_key_iou=[round(v, 3) for v in key_iou])
     if not key_iou or float(np.mean(key_iou)) < MIN_KEY_IOU:
         fig["edge_reason"] = (f"a leaf hinged on its static edge does not explain the keyframes' masks (overlap "
                               f"{np.mean(key_iou) if key_iou else 0.0:.2f}, need {MIN_KEY_IOU}): no flat door or lid")
         return None, fig
-    measured = iou >= MIN_FRAME_IOU
+    measured = read & (iou >= MIN_FRAME_IOU)  # a frame read by colour steers the path, never measures: an open door
+    #                                          shows colours no keyframe taught, and its plain body reads as it closed
     d = unwrapped - unwrapped[int(np.argmax(measured))]
     span = float(np.ptp(d[measured])) if measured.any() else 0.0
     if span > np.pi:  # no door or lid turns further; the path went over to the leaf's mirror image somewhere
         fig["edge_reason"] = (f"its leaf turns {np.degrees(span):.0f} deg over the video, more than a door or lid can: "
                               f"its mirror image was followed (label a frame in each stretch where it rests)")
         return None, fig
-    pos = {i: n for n, i in enumerate(shown)}
+    pos = {i: n for n, i in enumerate(every)}
     at = [pos.get(i) for i in frames]
     step = float(angles[1] - angles[0])
     ok = np.array([n is not None and bool(measured[n]) for n in at])

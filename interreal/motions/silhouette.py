@@ -21,7 +21,7 @@ silhouettes (its states 0.14-0.37 off), so the gates and the labels refuse most 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -61,9 +61,15 @@ class Views:
     K: np.ndarray
     dist: np.ndarray | None = None
     occluders: list[np.ndarray | None] | None = None
+    images: Callable[[int], np.ndarray] | None = None  # frame i's RGB image (any size), for the routes that read it
 
     def occluder(self, i: int) -> np.ndarray | None:
         return None if self.occluders is None else self.occluders[i]
+
+    def image(self, i: int) -> np.ndarray:
+        if self.images is None:
+            raise ValueError("these views carry no images")
+        return self.images(i)
 
 
 def front_corners(mask: np.ndarray) -> np.ndarray | None:
@@ -279,7 +285,7 @@ class Silhouettes:
         self.crop: dict[int, tuple[int, int, np.ndarray]] = {}
         self.hidden: dict[int, np.ndarray] = {}  # the crop's pixels an occluder covers
         for i in frames:
-            m = self._small(views.masks[i])
+            m = self.small(views.masks[i])
             ys, xs = np.nonzero(m)
             if not len(xs):
                 continue
@@ -289,9 +295,10 @@ class Silhouettes:
             self.crop[i] = (x0, y0, m[box])
             occ = views.occluder(i)
             if occ is not None and occ.any():
-                self.hidden[i] = self._small(occ)[box] & ~m[box]
+                self.hidden[i] = self.small(occ)[box] & ~m[box]
 
-    def _small(self, m: np.ndarray) -> np.ndarray:
+    def small(self, m: np.ndarray) -> np.ndarray:
+        """A full-size mask at the silhouettes' size."""
         if self.scale >= 1:
             return m.astype(bool)
         return cv2.resize(m.astype(np.uint8), None, fx=self.scale, fy=self.scale, interpolation=cv2.INTER_AREA) > 0
@@ -368,7 +375,8 @@ def views_of(ds, obj: int) -> Views:
     masks = [ds.load_mask(f)[..., obj] for f in ds.frames]
     occluders = ([read_transient(ds.root, f.fid, m.shape) for f, m in zip(ds.frames, masks)]
                  if has_transients(ds.root) else None)
-    return Views(masks, w2c, ds.intrinsics.K(), ds.intrinsics.dist(), occluders)
+    images = (lambda i: ds.load_image(ds.frames[i])) if hasattr(ds, "load_image") else None
+    return Views(masks, w2c, ds.intrinsics.K(), ds.intrinsics.dist(), occluders, images)
 
 
 def measure_silhouettes(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: np.ndarray,

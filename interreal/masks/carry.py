@@ -18,7 +18,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from ..transients.auto import AutoLayer, at_size
+from ..images import at_size
+from ..transients.auto import AutoLayer
 from .appearance import quantize
 from .flow import FlowConfig, FlowEngine, sampling_grid
 from .soft import disk

@@ -16,6 +16,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..images import at_size
 from ..masks.appearance import AppearanceConfig, quantize
 from .silhouette import Silhouettes, Views
 
@@ -36,16 +37,12 @@ def colour_table(views: Views, keys: list[int], sil: Silhouettes) -> np.ndarray:
     for k in keys:
         image = views.image(k)
         mask = sil.small(views.masks[k])
-        q = quantize(_fit(image, mask.shape), BINS)
+        q = quantize(at_size(image, mask.shape[::-1]), BINS)
         r = max(3, int(BAND * np.hypot(*mask.shape)))
         near = cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)) > 0
         part += np.bincount(q[mask], minlength=n)
         rest += np.bincount(q[near & ~mask], minlength=n) + FAR * np.bincount(q[~mask], minlength=n)
     return (part / part.sum() > rest / rest.sum()).astype(np.float32)
-
-
-def _fit(image: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
-    return cv2.resize(image, hw[::-1], interpolation=cv2.INTER_AREA) if image.shape[:2] != hw else image
 
 
 class ColourSilhouettes:
@@ -78,7 +75,7 @@ class ColourSilhouettes:
                 self.chance[i] = (np.zeros((1, 1), np.float32), np.zeros((1, 1), bool), (0, 0))
                 return self.chance[i]
             box = np.s_[ys.min():ys.max() + 1, xs.min():xs.max() + 1]
-            chance = self.table[quantize(_fit(self.views.image(i), self.hw)[box], BINS)].astype(np.float32)
+            chance = self.table[quantize(at_size(self.views.image(i), self.hw[::-1])[box], BINS)].astype(np.float32)
             self.chance[i] = (chance, region[box], (int(xs.min()), int(ys.min())))
         return self.chance[i]
 

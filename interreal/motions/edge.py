@@ -462,10 +462,9 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
     lost = [i for i in range(len(views.masks)) if i not in sil.crop] if views.images is not None else []
     every = sorted(shown + lost)
     colour = ColourSilhouettes(views, sil, keys, [leaf.corners(*size, a) for a in SWEEP]) if lost else None
-    by_mask = iou_curves(sil, leaf, size, shown, angles)
     curves = np.zeros((len(every), len(angles)))
     read = np.isin(every, shown)
-    curves[read] = by_mask
+    curves[read] = iou_curves(sil, leaf, size, shown, angles)
     if colour is not None:
         curves[~read] = iou_curves(colour, leaf, size, lost, angles)
         fig["edge_read_by_colour"] = len(lost)

@@ -32,6 +32,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import __version__, atomic
+from ..images import at_size
 from ..report import files_fingerprint, fingerprint
 from .hands import MEDIAPIPE_VERSION, MIDDLE_MCP, WRIST, HandTrack, find_hands, hand_length, hand_scale
 
@@ -114,11 +115,6 @@ def load_layer(path: Path, key: str) -> AutoLayer | None:
 def work_size(size: tuple[int, int], long_side: int = WORK_LONG_SIDE) -> tuple[int, int]:
     s = min(1.0, long_side / max(size))
     return max(1, round(size[0] * s)), max(1, round(size[1] * s))
-
-
-def at_size(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """`img` resized to `size` (w, h) by area (a frame at the layer's work size); as it is when it has that size."""
-    return img if (img.shape[1], img.shape[0]) == size else cv2.resize(img, size, interpolation=cv2.INTER_AREA)
 
 
 def propose(load: Callable[[int], np.ndarray], n: int, size: tuple[int, int], *, progress: bool = False,

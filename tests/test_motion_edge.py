@@ -1,73 +1,20 @@
 """The edge route of `interreal motions`: a plain door cut by the image border, hinged on the one edge of its outline
-that stays put; a drawer or a part that never moves gets no hinge from it."""
+that stays put, its leaf fitted and its angle followed frame by frame. Its refusals: `test_motion_edge_judged.py`;
+the frames read by colour: `test_motion_colour.py`."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
-from conftest import arc_camera, moved_front, silhouette, views_dataset
+from edge_scenes import KEYS, N, TALL, capture, off_deg
 
-from interreal.conventions import fid_of_index
-from interreal.dataset import known_states
 from interreal.motions.edge import (MAX_LINE_PX, SEARCH_SIDE, anchored_path, hinge_lines, key_cost, measure_edge,
                                     segments, smooth_path, triangulate)
-from interreal.motions.colour import SWEEP, ColourSilhouettes
 from interreal.motions.leaf import Leaf, Line, iou_curves, refine_leaf
 from interreal.motions.silhouette import Silhouettes, front_corners, views_of
-from interreal.transients import clear_transients, write_transient
-
-W, H = 480, 360
-K = np.array([[420.0, 0, W / 2], [0, 420.0, H / 2], [0, 0, 1]])
-# a door 0.5 wide and 2.0 tall seen from 1.3 away: its top and bottom are always outside the image
-TALL = np.array([[-0.25, 0.0, 1.0], [0.25, 0.0, 1.0], [0.25, 0.0, -1.0], [-0.25, 0.0, -1.0]])  # z up, facing -y
-N = 50
-KEYS = [0, 27, 49]
-
-
-def truth_states(n: int) -> np.ndarray:
-    """Rests closed, opens, rests open, half closes, rests."""
-    s = np.zeros(n)
-    s[12:22] = np.linspace(0, 1, 10)
-    s[22:32] = 1.0
-    s[32:42] = np.linspace(1, 0.4, 10)
-    s[42:] = 0.4
-    return s
-
-
-def capture(kind: str, n: int = N, moves: bool = True, root: Path = Path("no-such-dataset"), arm: bool = False,
-            thick: float = 0.0, arc_from: float = -25.0):
-    """A duck-typed dataset: cameras on a 50 deg arc 1.3 units away looking at the part's middle, and its masks:
-    the tall door turned up to 80 deg about its left edge, or a drawer front (the prism it sweeps, 0.2 units).
-    `arm`: while the part moves, an arm reaches up from the image's bottom to its far edge, cut from its masks and
-    written to the transient layer under `root`, as the masks stage does. `thick`: the door a slab this thick behind
-    its front (hinged on the front's edge, as a fridge door is); `arc_from`: where the 50 deg arc starts (deg)."""
-    part = np.concatenate([TALL, TALL + [0.0, thick, 0.0]]) if thick else TALL
-    states = truth_states(n) if moves else np.zeros(n)
-    c2ws, masks = [], []
-    for i, s in enumerate(states):
-        c2ws.append(arc_camera(arc_from + 50 * i / (n - 1), 1.3, 0.15))
-        m, uv = silhouette(moved_front(part, kind, s, 0.2, 80.0), c2ws[-1], K, (W, H))
-        if arm and 8 <= i < 46:
-            grip = 0.5 * (uv[1] + uv[2])  # the middle of the far edge
-            band = np.zeros((H, W), np.uint8)
-            cv2.fillConvexPoly(band, np.round([[grip[0] - 30, grip[1]], [grip[0] + 30, grip[1]], [grip[0] + 60, H],
-                                               [grip[0] - 10, H]]).astype(np.int32), 1)
-            m[band > 0] = 0
-            write_transient(root, fid_of_index(i), band > 0)
-        masks.append(m)
-    ds = views_dataset(c2ws, masks, K, root=root)
-    masks = [m[..., None] > 0 for m in masks]
-    labelled = np.zeros(n, bool)
-    labelled[[0, 6, 11, 22, 27, 31, 42, 49]] = True
-    st, kn = known_states(np.arange(n, dtype=float), np.where(labelled, states, 0)[:, None], labelled[:, None])
-    return ds, states, st[:, 0], kn[:, 0], labelled, masks
-
-
-def off_deg(axis: np.ndarray, truth: list[float]) -> float:
-    return float(np.degrees(np.arccos(min(1.0, abs(axis @ truth)))))
+from interreal.transients import clear_transients
 
 
 def test_a_tall_plain_door_cut_by_the_border_is_hinged_on_its_static_edge():
@@ -132,25 +79,6 @@ def test_an_arm_in_front_of_the_door_is_no_evidence_against_the_leaf(tmp_path: P
     assert motion is None and blind["edge_outline_px"] > fig["edge_outline_px"] + 1.0, (blind, fig)
 
 
-def test_a_drawer_gets_no_hinge_from_its_static_edges():
-    ds, truth, st, kn, labelled, _ = capture("slide")
-    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)
-    assert motion is None or not fig["accepted"] or motion.kind != "hinge", fig
-
-
-@pytest.mark.parametrize("kind", ["hinge", "slide"])
-def test_a_part_that_never_moves_gets_no_motion(kind):
-    ds, truth, st, kn, labelled, _ = capture(kind, moves=False)
-    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)
-    assert motion is None or not fig["accepted"], fig
-
-
-def test_no_keyframe_is_one_clear_reason():
-    ds, truth, st, kn, labelled, _ = capture("hinge")
-    motion, fig = measure_edge(ds, 0, st, kn, labelled, [], min_pixels=50)
-    assert motion is None and "keyframe" in fig["edge_reason"]
-
-
 def test_segments_leave_out_the_image_border():
     m = np.zeros((100, 200), bool)
     m[:, :80] = True  # a part cut by the left, top and bottom borders: one edge of its own
@@ -183,32 +111,6 @@ def test_frames_labelled_at_one_end_share_one_angle_where_the_mirror_turns_with_
     held = np.degrees(angles[anchored_path(curves, angles, np.zeros(n, bool), [closed])])
     assert np.ptp(free[closed]) > 50  # alone, the path follows the mirror away
     assert np.allclose(held[closed], 0.0)  # the frames labelled closed stay at one angle: the leaf's
-
-
-def test_a_range_no_door_can_turn_is_not_used(monkeypatch):
-    from interreal.dataset import Articulation
-    from interreal.motions import edge
-
-    def scaled_past(fit, frames, states, known, labelled, fig, trust_labels=False):  # labels that scale 80 deg to 200
-        return Articulation("hinge", fit.axis, fit.point, np.radians(200.0), {}), dict(fig, accepted=True, reason="")
-
-    monkeypatch.setattr(edge, "articulate", scaled_past)
-    ds, truth, st, kn, labelled, _ = capture("hinge")
-    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)
-    assert not fig["accepted"] and "more than a door" in fig["reason"], fig
-
-
-def test_frames_the_masks_stage_does_not_trust_are_left_out():
-    ds, truth, st, kn, labelled, masks = capture("hinge")
-    conf = np.ones(N)
-    for i in range(13, 21):  # propagation left the mask where the door rested while it opened
-        masks[i] = masks[12]
-        conf[i] = 0.1
-    ds.load_mask = lambda f: masks[f.index]
-    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50, confidence=conf)
-    assert motion is not None and fig["accepted"], fig
-    assert off_deg(motion.axis, [0.0, 0.0, 1.0]) < 2.0 and abs(np.degrees(motion.range) - 80) < 4
-    assert not {f for f, _ in fig["frame_states"]} & set(range(13, 21))  # no state read from a mask it distrusts
 
 
 def test_two_keyframes_outline_stretches_triangulate_to_the_hinge():
@@ -263,46 +165,3 @@ def test_more_keyframes_with_the_hinge_edge_hidden_in_some_still_give_the_hinge(
     motion, fig = measure_edge(ds, 0, st, kn, labelled, keys, min_pixels=50)
     assert motion is not None and fig["accepted"], fig
     assert off_deg(motion.axis, [0.0, 0.0, 1.0]) < 2.0 and abs(np.degrees(motion.range) - 80) < 4
-
-
-def painted(masks: list[np.ndarray], seed: int = 0) -> list[np.ndarray]:
-    """RGB frames of the capture: a plain blue door (its masks) on a beige wall shaded left to right, both noisy."""
-    rng = np.random.default_rng(seed)
-    wall = np.dstack([np.broadcast_to(np.linspace(150, 210, W), (H, W)), np.full((H, W), 180.0), np.full((H, W), 150.0)])
-    out = []
-    for m in masks:
-        img = np.where(m.reshape(H, W, 1) > 0, [40.0, 90.0, 200.0], wall) + rng.normal(0, 6, (H, W, 3))
-        out.append(np.clip(img, 0, 255).astype(np.uint8))
-    return out
-
-
-def test_a_frame_without_a_mask_reads_the_doors_angle_by_its_colour():
-    """The keyframes teach the door's colour; a frame whose mask is lost says which angle of the leaf its pixels
-    agree with, closed or open."""
-    ds, truth, st, kn, labelled, masks = capture("hinge")
-    images = painted(masks)
-    ds.load_image = lambda f: images[f.index]
-    views = views_of(ds, 0)
-    leaf = Leaf(Line(TALL[3].copy(), TALL[0].copy(), 0.0, 0))  # the true hinge: the left edge, bottom to top
-    size = np.array([0.25, 0.0, 1.0])  # 0.5 wide on a 2.0 line
-    colour = ColourSilhouettes(views, Silhouettes(views, KEYS), KEYS, [leaf.corners(*size, a) for a in SWEEP])
-    angles = np.radians(np.arange(-180, 180, 2.5))
-    curves = iou_curves(colour, leaf, size, [5, 25], angles)  # closed, fully open; neither a keyframe
-    turned = np.degrees(angles[curves[1].argmax()] - angles[curves[0].argmax()])
-    assert abs(abs((turned + 180) % 360 - 180) - 80.0) <= 5.0, turned
-    assert curves.max(1).min() > 0.8, curves.max(1)
-
-
-def test_frames_whose_mask_is_lost_steer_the_path_by_colour_but_measure_nothing():
-    ds, truth, st, kn, labelled, masks = capture("hinge")
-    images = painted(masks)
-    lost = range(13, 27)  # the door lost while it opened and came to rest open
-    for i in lost:
-        masks[i] = np.zeros_like(masks[i])
-    ds.load_mask = lambda f: masks[f.index]
-    ds.load_image = lambda f: images[f.index]
-    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)
-    assert motion is not None and fig["accepted"], fig
-    assert off_deg(motion.axis, [0.0, 0.0, 1.0]) < 2.0 and abs(np.degrees(motion.range) - 80) < 12
-    assert fig["edge_read_by_colour"] == len(lost)
-    assert not {f for f, _ in fig["frame_states"]} & set(lost)  # a state is only ever read from a mask

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import arc_camera, moved_front, silhouette, views_dataset
-from test_motion_edge import KEYS, K, H, W, off_deg, truth_states
+from edge_scenes import KEYS, K, H, W, off_deg, truth_states
 
 from interreal.dataset import known_states
 from interreal.motions.prism import judge, measure_prism
@@ -18,7 +18,7 @@ N = 50
 
 
 def capture(kind: str, moves: bool = True):
-    """A duck-typed dataset (as `test_motion_edge.capture`): the drawer front pulled out `SLIDE` (the prism it
+    """A duck-typed dataset (as `edge_scenes.capture`): the drawer front pulled out `SLIDE` (the prism it
     sweeps), or the same front as a flap turned 80 deg about its left edge, seen from an arc of 50 deg above it."""
     states = truth_states(N) if moves else np.zeros(N)
     c2ws = [arc_camera(-25 + 50 * i / (N - 1), 1.3, 0.4) for i in range(N)]

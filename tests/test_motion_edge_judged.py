@@ -1,0 +1,55 @@
+"""The edge route's refusals and what it leaves out: a drawer, a part that never moves, no keyframe, a range no door
+turns, and the frames whose masks the masks stage does not trust."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from edge_scenes import KEYS, N, capture, off_deg
+
+from interreal.motions.edge import measure_edge
+
+
+def test_a_drawer_gets_no_hinge_from_its_static_edges():
+    ds, truth, st, kn, labelled, _ = capture("slide")
+    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)
+    assert motion is None or not fig["accepted"] or motion.kind != "hinge", fig
+
+
+@pytest.mark.parametrize("kind", ["hinge", "slide"])
+def test_a_part_that_never_moves_gets_no_motion(kind):
+    ds, truth, st, kn, labelled, _ = capture(kind, moves=False)
+    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)
+    assert motion is None or not fig["accepted"], fig
+
+
+def test_no_keyframe_is_one_clear_reason():
+    ds, truth, st, kn, labelled, _ = capture("hinge")
+    motion, fig = measure_edge(ds, 0, st, kn, labelled, [], min_pixels=50)
+    assert motion is None and "keyframe" in fig["edge_reason"]
+
+
+def test_a_range_no_door_can_turn_is_not_used(monkeypatch):
+    from interreal.dataset import Articulation
+    from interreal.motions import edge
+
+    def scaled_past(fit, frames, states, known, labelled, fig, trust_labels=False):  # labels that scale 80 deg to 200
+        return Articulation("hinge", fit.axis, fit.point, np.radians(200.0), {}), dict(fig, accepted=True, reason="")
+
+    monkeypatch.setattr(edge, "articulate", scaled_past)
+    ds, truth, st, kn, labelled, _ = capture("hinge")
+    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)
+    assert not fig["accepted"] and "more than a door" in fig["reason"], fig
+
+
+def test_frames_the_masks_stage_does_not_trust_are_left_out():
+    ds, truth, st, kn, labelled, masks = capture("hinge")
+    conf = np.ones(N)
+    for i in range(13, 21):  # propagation left the mask where the door rested while it opened
+        masks[i] = masks[12]
+        conf[i] = 0.1
+    ds.load_mask = lambda f: masks[f.index]
+    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50, confidence=conf)
+    assert motion is not None and fig["accepted"], fig
+    assert off_deg(motion.axis, [0.0, 0.0, 1.0]) < 2.0 and abs(np.degrees(motion.range) - 80) < 4
+    assert not {f for f, _ in fig["frame_states"]} & set(range(13, 21))  # no state read from a mask it distrusts

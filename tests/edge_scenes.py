@@ -22,13 +22,13 @@ N = 50
 KEYS = [0, 27, 49]
 
 
-def truth_states(n: int) -> np.ndarray:
-    """Rests closed, opens, rests open, half closes, rests."""
+def truth_states(n: int, start: int = 12) -> np.ndarray:
+    """Rests closed, opens from frame `start` over 10 frames, rests open, half closes, rests."""
     s = np.zeros(n)
-    s[12:22] = np.linspace(0, 1, 10)
-    s[22:32] = 1.0
-    s[32:42] = np.linspace(1, 0.4, 10)
-    s[42:] = 0.4
+    s[start:start + 10] = np.linspace(0, 1, 10)
+    s[start + 10:start + 20] = 1.0
+    s[start + 20:start + 30] = np.linspace(1, 0.4, 10)
+    s[start + 30:] = 0.4
     return s
 
 

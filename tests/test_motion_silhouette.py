@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 from conftest import arc_camera, moved_front, silhouette, views_dataset
+from edge_scenes import truth_states
 
 from interreal.dataset import known_states
 from interreal.motions.silhouette import front_corners, measure_silhouettes
@@ -14,22 +15,12 @@ K = np.array([[600.0, 0, W / 2], [0, 600.0, H / 2], [0, 0, 1]])
 FRONT = np.array([[-0.2, 0.0, 0.1], [0.2, 0.0, 0.1], [0.2, 0.0, -0.1], [-0.2, 0.0, -0.1]])  # z up, facing -y
 
 
-def truth_states(n: int) -> np.ndarray:
-    """Rests closed, opens, rests open, half closes, rests."""
-    s = np.zeros(n)
-    s[15:25] = np.linspace(0, 1, 10)
-    s[25:35] = 1.0
-    s[35:45] = np.linspace(1, 0.4, 10)
-    s[45:] = 0.4
-    return s
-
-
 def capture(kind: str, sweep_deg: float = 60.0, n: int = 50, dist: np.ndarray | None = None,
             aim: tuple[float, float, float] = (0.0, 0.0, 0.0)):
     """A duck-typed dataset of n frames: cameras on an arc 1.5 units away, and the part's masks: a drawer (the
     prism its front sweeps, 0.15 units at state 1) or a door (its front turned up to 70 deg about its left edge);
     the cameras look at `aim` (the part off the image's centre) through a lens with `dist`."""
-    states = truth_states(n)
+    states = truth_states(n, start=15)
     c2ws, masks = [], []
     for i, s in enumerate(states):
         c2ws.append(arc_camera(-sweep_deg / 2 + sweep_deg * i / (n - 1), 1.5, 0.3, aim))

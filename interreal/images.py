@@ -11,12 +11,12 @@ from PIL import Image
 
 from .errors import DatasetError
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
+
+
 def at_size(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """`img` resized to `size` (w, h) by area (a frame at a stage's work size); as it is when it has that size."""
     return img if (img.shape[1], img.shape[0]) == size else cv2.resize(img, size, interpolation=cv2.INTER_AREA)
-
-
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 
 
 def decode_image(path: str | Path, flags: int | None = None) -> np.ndarray | None:

@@ -33,6 +33,7 @@ else:
 
 from .dataset import decode_image as decode_file
 from .errors import InputError
+from .images import at_size
 
 VIDEO_SUFFIXES = {".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm", ".3gp", ".mts", ".m2ts"}
 RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".raf", ".orf", ".rw2",
@@ -75,12 +76,6 @@ def fit_long_side(w: int, h: int, long_side: int | None) -> tuple[int, int]:
         return w, h
     s = long_side / max(w, h)
     return max(1, round(w * s)), max(1, round(h * s))
-
-
-def resize_to(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    if (img.shape[1], img.shape[0]) == size:
-        return img
-    return cv2.resize(img, size, interpolation=cv2.INTER_AREA)
 
 
 @dataclass
@@ -284,7 +279,7 @@ class ImageFolderSource(Source):
                     raise InputError(f"{self.files[i]} decodes to {img.shape[1]}x{img.shape[0]}, the others are "
                                      f"{self.info.width}x{self.info.height}; one capture must have one size")
                 bar.update(1)
-                yield i, resize_to(img, size)
+                yield i, at_size(img, size)
         finally:
             bar.close()
 
@@ -364,7 +359,7 @@ class RawFolderSource(Source):
             for i in order:
                 img = _srgb_encode(self._develop_linear(self.files[i], half=half) * self.gain)
                 bar.update(1)
-                yield i, resize_to(img, size)
+                yield i, at_size(img, size)
         finally:
             bar.close()
 

@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 
 from ..conventions import UNANNOTATED
+from ..images import at_size
 from .appearance import AppearanceConfig, ColourModel, LocalColour, heldout_information, joint_log_table
 from .flow import FlowConfig, FlowEngine, Step, make_step, sampling_grid
 from .evidence import StepEvidence
@@ -212,8 +213,7 @@ class Propagator(StepEvidence):
         for pos in (t, t + 1):
             if pos not in self._decoded:
                 full = self.cache.load(pos)
-                work = full if (full.shape[1], full.shape[0]) == self.wsize else \
-                    cv2.resize(full, self.wsize, interpolation=cv2.INTER_AREA)
+                work = at_size(full, self.wsize)
                 self._decoded = {k: v for k, v in self._decoded.items() if k in (t, t + 1)}
                 self._decoded[pos] = (full, work)
             images[pos] = self._decoded[pos]

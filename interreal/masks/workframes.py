@@ -16,6 +16,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from ..images import at_size
 from .appearance import quantize
 
 
@@ -41,10 +42,7 @@ class FrameCache:
 
     def work(self, pos: int) -> np.ndarray:
         if pos not in self._work:
-            img = self.full(pos)
-            if (img.shape[1], img.shape[0]) != self.work_size:
-                img = cv2.resize(img, self.work_size, interpolation=cv2.INTER_AREA)
-            self._work[pos] = img
+            self._work[pos] = at_size(self.full(pos), self.work_size)
         return self._work[pos]
 
     def bins(self, pos: int) -> np.ndarray:

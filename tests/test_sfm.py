@@ -53,6 +53,9 @@ def errors(ds: Path, truth: dict[int, np.ndarray]) -> dict[str, float]:
     return compare_poses(np.stack([f.c2w for f in d.frames]), np.stack([truth[f.index] for f in d.frames]))
 
 
+ONE_THREAD = 1  # the shared model is built and refined on one thread: multithreaded COLMAP is not repeatable
+
+
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> Path:
     return render_capture(tmp_path_factory.mktemp("cap"))
@@ -64,7 +67,7 @@ def posed(capture, tmp_path_factory) -> tuple[Path, dict]:
     ds = tmp_path_factory.mktemp("ds") / "room"
     extract_frames(capture / "video.mp4", ds, target=24)
     truth_masks_npy(capture, ds)
-    fig = estimate_poses(ds)
+    fig = estimate_poses(ds, num_threads=ONE_THREAD)
     return ds, fig
 
 
@@ -245,7 +248,7 @@ def test_robust_final_ba_resists_bad_observations(posed, capture):
 
     def rot_err(loss: str) -> float:
         r = pycolmap.Reconstruction(rec)
-        refine_intrinsics(pycolmap, r, SfMConfig(ba_loss=loss), "fixed")
+        refine_intrinsics(pycolmap, r, SfMConfig(ba_loss=loss, num_threads=ONE_THREAD), "fixed")
         names, c2w, _ = rec_poses(r)
         ids = [frame_index(n) for n in names]
         return compare_poses(opencv_to_opengl(c2w), np.stack([truth[i] for i in ids]))["rot_err_deg_median"]
@@ -254,14 +257,14 @@ def test_robust_final_ba_resists_bad_observations(posed, capture):
     assert SfMConfig().ba_loss == "soft_l1"
     with pytest.raises(InputError, match="ba_loss must be one of"):  # checked before anything is written
         estimate_poses(ds, ba_loss="l2")
-    assert robust < 0.8 * squared, (robust, squared)  # measured 0.44 vs 0.68 deg (seeds 1, 2: 0.45 / 0.60, 0.33 / 0.48)
+    assert robust < 0.8 * squared, (robust, squared)  # measured 0.35 vs 0.50 deg on one thread
 
 
 @pytest.mark.slow
 def test_rerun_reuses_the_finished_model(posed):
     ds, fig = posed
     before = (ds / "transforms.json").read_text()
-    fig2 = estimate_poses(ds)
+    fig2 = estimate_poses(ds, num_threads=ONE_THREAD)
     rep = json.loads((ds / "reports" / "poses.json").read_text())
     assert rep["steps"]["features"]["reused"] and rep["steps"]["reuse"]["reused"]
     assert fig2["registered"] == fig["registered"]

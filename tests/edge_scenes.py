@@ -68,7 +68,8 @@ def off_deg(axis: np.ndarray, truth: list[float]) -> float:
 def painted(masks: list[np.ndarray], seed: int = 0) -> list[np.ndarray]:
     """RGB frames of the capture: a plain blue door (its masks) on a beige wall shaded left to right, both noisy."""
     rng = np.random.default_rng(seed)
-    wall = np.dstack([np.broadcast_to(np.linspace(150, 210, W), (H, W)), np.full((H, W), 180.0), np.full((H, W), 150.0)])
+    shade = np.broadcast_to(np.linspace(150, 210, W), (H, W))
+    wall = np.dstack([shade, np.full((H, W), 180.0), np.full((H, W), 150.0)])
     out = []
     for m in masks:
         img = np.where(m.reshape(H, W, 1) > 0, [40.0, 90.0, 200.0], wall) + rng.normal(0, 6, (H, W, 3))

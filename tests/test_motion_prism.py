@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import arc_camera, moved_front, silhouette, views_dataset
-from edge_scenes import KEYS, K, H, W, off_deg, truth_states
+from edge_scenes import KEYS, K, H, N, W, off_deg, truth_states
 
 from interreal.dataset import known_states
 from interreal.motions.prism import judge, measure_prism
@@ -14,7 +14,6 @@ from interreal.motions.prism import judge, measure_prism
 # a drawer front 0.5 wide and 0.2 tall, z up, facing -y, wholly in view from 1.3 away (above it: its top shows)
 DRAWER = np.array([[-0.25, 0.0, 0.1], [0.25, 0.0, 0.1], [0.25, 0.0, -0.1], [-0.25, 0.0, -0.1]])
 SLIDE = 0.3  # pulled out this far at state 1 (along -y)
-N = 50
 
 
 def capture(kind: str, moves: bool = True):

@@ -11,17 +11,20 @@ the frames' best silhouettes overlap their masks most.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import minimize
+from scipy.optimize import minimize, minimize_scalar
 
 from .silhouette import Silhouettes
 
+SIZE_ANGLES = 36      # the size search's angle grid (10 deg), the best two peaks on it then climbed (`crest`)
+CREST_TOL = np.radians(0.2)  # ... to within this
 KEEP = 0.6            # the share of frames (best first) a fit is judged on: masks fail, hands cover
 REFINE_FRAMES = 20    # about this many frames besides the keyframes refine the leaf (spread over the video)
 REFINE_STEPS = 120    # Nelder-Mead steps a round; three rounds, each frame's angle re-centred between them
-LOCAL = np.radians(np.arange(-6.0, 6.1, 1.5))  # each frame's angle searched this near its last best in a round
+LOCAL = np.radians(6.0)  # each frame's angle climbed within this of its last best in a round
 STEP = 0.01           # the refinement's unit: the line's ends and span move in hundredths of its length, the width
 #                       and thickness in hundredths of the width
 THICK_STARTS = (0.0, 8.0, -8.0)  # thicknesses (hundredths of the width) the refinement starts from, on either side:
@@ -33,13 +36,14 @@ THICK_STARTS = (0.0, 8.0, -8.0)  # thicknesses (hundredths of the width) the ref
 
 @dataclass
 class Line:
-    """A 3D segment P -> Q (world), its mean outline distance (px) over the frames kept, and the keyframe it came
-    from."""
+    """A 3D segment P -> Q (world), its mean outline distance (px) over the frames kept, the keyframe it came
+    from, and a direction in the scene (`toward`: to that keyframe's camera) that a leaf's angle 0 points along."""
 
     p: np.ndarray
     q: np.ndarray
     cost: float
     key: int
+    toward: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def axis(self) -> np.ndarray:
@@ -56,11 +60,7 @@ class Leaf:
     def __init__(self, line: Line, thickness: float = 0.0):
         self.line = line
         self.thickness = thickness
-        a = line.axis
-        helper = np.eye(3)[int(np.argmin(np.abs(a)))]
-        self.b1 = np.cross(a, helper)
-        self.b1 /= np.linalg.norm(self.b1)
-        self.b2 = np.cross(a, self.b1)
+        self.b1, self.b2 = basis(line)
         self.length = float(np.linalg.norm(line.q - line.p))
 
     def corners(self, width: float, h0: float, h1: float, phi: float) -> np.ndarray:
@@ -74,9 +74,37 @@ class Leaf:
         return np.concatenate([front, front + back])
 
 
+def basis(line: Line) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (3,) across the line, angle 0 along the first: the line's `toward` direction (the scene's,
+    so a fit reads the same in any world frame SfM hands us: on a plain door, the world turned 20 or 45 deg moved
+    the fitted range 7 % -> 2 % / 29 % when angle 0 was a world axis), else a world axis."""
+    a = line.axis
+    ref = None if line.toward is None else line.toward - (line.toward @ a) * a
+    if ref is None or np.linalg.norm(ref) < 1e-6 * max(np.linalg.norm(line.toward), 1e-12):
+        ref = np.cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])
+    b1 = ref / np.linalg.norm(ref)
+    return b1, np.cross(a, b1)
+
+
 def iou_curves(sil: Silhouettes, leaf: Leaf, size: np.ndarray, frames: list[int], angles: np.ndarray) -> np.ndarray:
     """(F, A) overlap of each frame's mask with the leaf of `size` (width, h0, h1) at each angle."""
     return np.array([[sil.iou(leaf.corners(*size, phi), i) for phi in angles] for i in frames])
+
+
+def crest(overlap: Callable[[float], float], grid: np.ndarray, values: np.ndarray) -> tuple[float, float]:
+    """(overlap, angle) at the top of `overlap`, climbed from the two highest peaks of its `values` on the evenly
+    spaced circular `grid`, each within a grid step. Why climbed: a leaf's size read off the grid's best moves with
+    where the grid happens to fall (angle 0 turned 2.5-7.5 deg moved a plain door's range 2-28 %); why two: a leaf
+    and its mirror image about the plane through the line and the camera cast the same silhouette, near-ties."""
+    step = float(grid[1] - grid[0])
+    peaks = np.flatnonzero((values >= np.roll(values, 1)) & (values >= np.roll(values, -1)))
+    top = (float(values.max()), float(grid[int(values.argmax())]))
+    for j in peaks[np.argsort(values[peaks])[::-1][:2]]:
+        res = minimize_scalar(lambda a: -overlap(a), bounds=(grid[j] - step, grid[j] + step), method="bounded",
+                              options={"xatol": CREST_TOL})
+        if -res.fun > top[0]:
+            top = (float(-res.fun), float(res.x))
+    return top
 
 
 def halves(keyed: np.ndarray, rest: np.ndarray) -> list[float]:
@@ -97,16 +125,23 @@ def fit_leaf(sil: Silhouettes, line: Line, frames: list[int], keys: list[int],
     image, a wider leaf turned further casts the same silhouette in any one view; only views of one state from
     different places pin its free edge. Widths and spans in lengths of the line's segment."""
     leaf = Leaf(line)
-    coarse = np.linspace(-np.pi, np.pi, 36, endpoint=False)
+    coarse = np.linspace(-np.pi, np.pi, SIZE_ANGLES, endpoint=False)
     groups = [g for g in (ends or []) if len(g) >= 2]
     some = sorted(set(frames[::max(1, len(frames) // 16)]) - set(keys))
+
+    def best(size: np.ndarray, group: list[int]) -> np.ndarray:
+        curves = iou_curves(sil, leaf, size, group, coarse)
+        return np.array([crest(lambda phi, i=i: sil.iou(leaf.corners(*size, phi), i), coarse, c)[0]
+                         for i, c in zip(group, curves)])
 
     def score(size: np.ndarray) -> float:
         if size[0] <= 0.05 or size[2] - size[1] < 0.2:
             return 0.0
-        parts = halves(iou_curves(sil, leaf, size, keys, coarse).max(1),
-                       iou_curves(sil, leaf, size, some, coarse).max(1) if some else np.zeros(0))
-        parts += [float(iou_curves(sil, leaf, size, g, coarse).mean(0).max()) for g in groups]
+        parts = halves(best(size, keys), best(size, some) if some else np.zeros(0))
+        for g in groups:  # one angle shared by the frames at one end
+            mean = iou_curves(sil, leaf, size, g, coarse).mean(0)
+            parts.append(crest(lambda phi, g=g: float(np.mean([sil.iou(leaf.corners(*size, phi), i) for i in g])),
+                               coarse, mean)[0])
         return float(np.mean(parts))
 
     start = max((np.array([w, 0.0, 1.0]) for w in np.geomspace(0.1, 3.0, 12)), key=score)
@@ -121,7 +156,7 @@ def _moved(line: Line, leaf: Leaf, x: np.ndarray) -> Line:
     """`line` with its ends moved x[0:2] and x[2:4] (`STEP`s of its length) across it, along `leaf`'s b1 and b2."""
     d = STEP * leaf.length
     return Line(line.p + d * (x[0] * leaf.b1 + x[1] * leaf.b2), line.q + d * (x[2] * leaf.b1 + x[3] * leaf.b2),
-                line.cost, line.key)
+                line.cost, line.key, line.toward)
 
 
 def _resized(size: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -148,9 +183,10 @@ def refine_leaf(sil: Silhouettes, line: Line, size: np.ndarray, frames: list[int
         if sz[0] <= 0.05 or sz[2] - sz[1] < 0.2:
             return 0.0, phis
         slab = Leaf(_moved(line, leaf, x), STEP * x[7])
-        vals = np.array([[sil.iou(slab.corners(*sz, p + d), i) for d in LOCAL] for i, p in zip(some, phis)])
-        best = vals.max(1)
-        return float(np.mean(halves(best[:n], best[n:]))), phis + LOCAL[vals.argmax(1)]
+        tops = [minimize_scalar(lambda a, i=i: -sil.iou(slab.corners(*sz, a), i), bounds=(p - LOCAL, p + LOCAL),
+                                method="bounded", options={"xatol": CREST_TOL}) for i, p in zip(some, phis)]
+        best = -np.array([t.fun for t in tops])
+        return float(np.mean(halves(best[:n], best[n:]))), np.array([t.x for t in tops])
 
     def descend(x: np.ndarray, phis: np.ndarray) -> tuple[np.ndarray, float]:
         for _ in range(3):

@@ -210,7 +210,7 @@ def prism_motion(views: Views, frames: list[int], keys: list[int], states: np.nd
     weight = np.array([edge.KEY_WEIGHT if i in keys else 1.0 for i in shown])[:, None]
     pulls = pull_path(curves * weight, front.width, still, ends)
     iou = np.array([sil.iou(front.prism(p), i) for p, i in zip(pulls, shown)])
-    own = Leaf(Line(front.corners[0], front.corners[1], 0.0, keys[0]))
+    own = Leaf(Line(front.corners[0], front.corners[1], 0.0, keys[0], front.corners[3] - front.corners[0]))
     leaves.append((own, np.array([np.linalg.norm(front.corners[3] - front.corners[0]) / own.length, 0.0, 1.0])))
     leaf_best = np.max([turning_leaf(coarse, leaf, size, shown, weight, still, ends) for leaf, size in leaves], axis=0)
     reason = judge(fig, shown, pulls, iou, keys, leaf_best)

@@ -186,7 +186,7 @@ def static_line(out: Outlines, views: Views, key: int, seg: np.ndarray, keys: li
     start = min(((cost(np.array([a, b])), (a, b)) for a in grid for b in grid), key=lambda r: r[0])[1]
     res = minimize(cost, np.array(start), method="Nelder-Mead", options={"xatol": 1e-3, "fatol": 1e-3, "maxiter": 200})
     p, q = centre + np.exp(res.x[0]) * rays[0], centre + np.exp(res.x[1]) * rays[1]
-    return Line(p, q, float(res.fun), key, centre - 0.5 * (p + q))
+    return Line.seen_from(p, q, float(res.fun), key, centre)
 
 
 def _rays(views: Views, out: Outlines, key: int, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -215,7 +215,7 @@ def triangulate(views: Views, out: Outlines, a: int, seg_a: np.ndarray, b: int, 
         ends.append(p0 + s * u)
     if np.linalg.norm(ends[1] - ends[0]) < 1e-9:
         return None
-    return Line(ends[0], ends[1], 0.0, a, ca - 0.5 * (ends[0] + ends[1]))
+    return Line.seen_from(ends[0], ends[1], 0.0, a, ca)
 
 
 def key_cost(on_keys: np.ndarray, pair: list[int]) -> float:

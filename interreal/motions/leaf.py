@@ -45,6 +45,11 @@ class Line:
     key: int
     toward: np.ndarray | None = field(default=None, repr=False)
 
+    @classmethod
+    def seen_from(cls, p: np.ndarray, q: np.ndarray, cost: float, key: int, camera: np.ndarray) -> Line:
+        """The segment P -> Q as keyframe `key`'s camera centre `camera` (3,) saw it: angle 0 points to it."""
+        return cls(p, q, cost, key, camera - 0.5 * (p + q))
+
     @property
     def axis(self) -> np.ndarray:
         d = self.q - self.p
@@ -79,8 +84,8 @@ def basis(line: Line) -> tuple[np.ndarray, np.ndarray]:
     so a fit reads the same in any world frame SfM hands us: on a plain door, the world turned 20 or 45 deg moved
     the fitted range 7 % -> 2 % / 29 % when angle 0 was a world axis), else a world axis."""
     a = line.axis
-    ref = None if line.toward is None else line.toward - (line.toward @ a) * a
-    if ref is None or np.linalg.norm(ref) < 1e-6 * max(np.linalg.norm(line.toward), 1e-12):
+    ref = np.zeros(3) if line.toward is None else line.toward - (line.toward @ a) * a
+    if np.linalg.norm(ref) < 1e-9:  # none given, or along the line
         ref = np.cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])
     b1 = ref / np.linalg.norm(ref)
     return b1, np.cross(a, b1)
@@ -100,11 +105,19 @@ def crest(overlap: Callable[[float], float], grid: np.ndarray, values: np.ndarra
     peaks = np.flatnonzero((values >= np.roll(values, 1)) & (values >= np.roll(values, -1)))
     top = (float(values.max()), float(grid[int(values.argmax())]))
     for j in peaks[np.argsort(values[peaks])[::-1][:2]]:
-        res = minimize_scalar(lambda a: -overlap(a), bounds=(grid[j] - step, grid[j] + step), method="bounded",
-                              options={"xatol": CREST_TOL})
-        if -res.fun > top[0]:
-            top = (float(-res.fun), float(res.x))
+        top = max(top, climb(overlap, grid[j] - step, grid[j] + step), key=lambda r: r[0])
     return top
+
+
+def climb(overlap: Callable[[float], float], lo: float, hi: float) -> tuple[float, float]:
+    """(overlap, angle) at the top of `overlap` between angles lo and hi, to within `CREST_TOL`."""
+    res = minimize_scalar(lambda a: -overlap(a), bounds=(lo, hi), method="bounded", options={"xatol": CREST_TOL})
+    return float(-res.fun), float(res.x)
+
+
+def overlap_at(sil: Silhouettes, leaf: Leaf, size: np.ndarray, frames: list[int]) -> Callable[[float], float]:
+    """The mean overlap of `frames`' masks with the leaf of `size` as a function of its angle: what `crest` climbs."""
+    return lambda phi: float(np.mean([sil.iou(leaf.corners(*size, phi), i) for i in frames]))
 
 
 def halves(keyed: np.ndarray, rest: np.ndarray) -> list[float]:
@@ -131,8 +144,7 @@ def fit_leaf(sil: Silhouettes, line: Line, frames: list[int], keys: list[int],
 
     def best(size: np.ndarray, group: list[int]) -> np.ndarray:
         curves = iou_curves(sil, leaf, size, group, coarse)
-        return np.array([crest(lambda phi, i=i: sil.iou(leaf.corners(*size, phi), i), coarse, c)[0]
-                         for i, c in zip(group, curves)])
+        return np.array([crest(overlap_at(sil, leaf, size, [i]), coarse, c)[0] for i, c in zip(group, curves)])
 
     def score(size: np.ndarray) -> float:
         if size[0] <= 0.05 or size[2] - size[1] < 0.2:
@@ -140,8 +152,7 @@ def fit_leaf(sil: Silhouettes, line: Line, frames: list[int], keys: list[int],
         parts = halves(best(size, keys), best(size, some) if some else np.zeros(0))
         for g in groups:  # one angle shared by the frames at one end
             mean = iou_curves(sil, leaf, size, g, coarse).mean(0)
-            parts.append(crest(lambda phi, g=g: float(np.mean([sil.iou(leaf.corners(*size, phi), i) for i in g])),
-                               coarse, mean)[0])
+            parts.append(crest(overlap_at(sil, leaf, size, g), coarse, mean)[0])
         return float(np.mean(parts))
 
     start = max((np.array([w, 0.0, 1.0]) for w in np.geomspace(0.1, 3.0, 12)), key=score)
@@ -183,10 +194,9 @@ def refine_leaf(sil: Silhouettes, line: Line, size: np.ndarray, frames: list[int
         if sz[0] <= 0.05 or sz[2] - sz[1] < 0.2:
             return 0.0, phis
         slab = Leaf(_moved(line, leaf, x), STEP * x[7])
-        tops = [minimize_scalar(lambda a, i=i: -sil.iou(slab.corners(*sz, a), i), bounds=(p - LOCAL, p + LOCAL),
-                                method="bounded", options={"xatol": CREST_TOL}) for i, p in zip(some, phis)]
-        best = -np.array([t.fun for t in tops])
-        return float(np.mean(halves(best[:n], best[n:]))), np.array([t.x for t in tops])
+        best, at = np.array([climb(overlap_at(sil, slab, sz, [i]), p - LOCAL, p + LOCAL)
+                             for i, p in zip(some, phis)]).T
+        return float(np.mean(halves(best[:n], best[n:]))), at
 
     def descend(x: np.ndarray, phis: np.ndarray) -> tuple[np.ndarray, float]:
         for _ in range(3):

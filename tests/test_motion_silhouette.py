@@ -173,3 +173,39 @@ def test_frames_no_displacement_explains_are_not_measured():
     measured = dict(fig["frame_states"])
     assert not {18, 19, 20, 21} & set(measured)
     assert abs(np.degrees(motion.range) - 70) < 3
+
+
+def test_overlaps_counted_at_once_equal_the_plain_count_with_an_occluder_and_a_point_behind_the_camera():
+    """`Silhouettes.ious` (a grid of shapes, one projection) and `iou` (one shape) are the same overlap as the plain
+    count: the convex silhouette less what the occluder hides, against the mask, in the crop; 0 behind the camera."""
+    from interreal.motions.silhouette import Silhouettes, Views
+
+    masks = [np.zeros((H, W), bool) for _ in range(2)]
+    masks[0][150:330, 200:420] = True
+    masks[1][100:300, 260:500] = True
+    occ = np.zeros((H, W), bool)
+    occ[200:260, :] = True  # an arm across the part and beyond it
+    w2c = np.stack([np.eye(4), np.eye(4)])
+    w2c[1, :3, 3] = (-0.1, 0.05, 0.2)
+    sil = Silhouettes(Views(masks, w2c, K, occluders=[None, occ]), [0, 1])
+    rng = np.random.default_rng(3)
+    shapes = np.concatenate([rng.normal((0.0, 0.0, 2.0), (0.3, 0.3, 0.5), (40, 8, 3)),
+                             [[[0.0, 0.0, -1.0]] + [[0.1, 0.1, 2.0]] * 7],  # one corner behind the camera
+                             [[[50.0, 50.0, 1.0]] * 8]])  # far off the image
+    for i in (0, 1):
+        x0, y0, m = sil.crop[i]
+        plain = []
+        for s in shapes:
+            if (s @ w2c[i, 2, :3] + w2c[i, 2, 3] <= 1e-6).any():
+                plain.append(0.0)
+                continue
+            uv, _ = cv2.projectPoints(s, *sil.pose[i], sil.k, sil.dist)
+            uv = np.clip(uv.reshape(-1, 2) - (x0, y0), -4 * max(m.shape), 4 * max(m.shape))
+            pred = np.zeros(m.shape, np.uint8)
+            cv2.fillConvexPoly(pred, cv2.convexHull(np.round(uv * 16).astype(np.int32)), 1, shift=4)
+            pred = (pred > 0) & ~sil.hidden.get(i, np.zeros_like(m))
+            plain.append((pred & m).sum() / max(1, (pred | m).sum()))
+        at_once = sil.ious(shapes, i)
+        assert at_once.tolist() == [sil.iou(s, i) for s in shapes] == plain
+        assert at_once[-2] == 0.0 and at_once[-1] == 0.0 and 0.2 < at_once.max() < 1.0
+    assert 1 in sil.hidden and sil.hidden[1].any() and 0 not in sil.hidden

@@ -99,3 +99,7 @@ class ColourSilhouettes:
         pred = (self.raster(pts, i, region.shape, corner) > 0) & region
         union = float(pred.sum()) + float(chance[region & ~pred].sum())
         return float(chance[pred].sum()) / union if union else 0.0
+
+    def ious(self, shapes: np.ndarray, i: int) -> np.ndarray:
+        """(A,) `iou` of each of shapes (A, N, 3) on frame i (as `Silhouettes.ious`)."""
+        return np.array([self.iou(s, i) for s in shapes])

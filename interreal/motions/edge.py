@@ -362,11 +362,11 @@ def slide_rival(sil: Silhouettes, out: Outlines, leaf: Leaf, size: np.ndarray, f
         for sign in (1.0, -1.0):  # the drawer comes out on one side of its front
             for shift in np.linspace(-1 / 3, 1 / 3, 5) * width:
                 front = base + shift * normal
+                prisms = np.stack([np.concatenate([front, front + sign * x * normal]) for x in reach])
                 shapes, total = [], 0.0
                 for i in some:
-                    prisms = [np.concatenate([front, front + sign * x * normal]) for x in reach]
-                    v = [sil.iou(q, i) for q in prisms]
-                    total += max(v)
+                    v = sil.ious(prisms, i)
+                    total += float(v.max())
                     shapes.append(prisms[int(np.argmax(v))])
                 if total > best[0]:
                     best = (total, shapes)

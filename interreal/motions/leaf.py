@@ -67,9 +67,11 @@ class Leaf:
         self.thickness = thickness
         self.b1, self.b2 = basis(line)
         self.length = float(np.linalg.norm(line.q - line.p))
+        self.axis = line.axis  # made once: `corners` runs a few hundred thousand times a part
 
     def corners(self, width: float, h0: float, h1: float, phi: float) -> np.ndarray:
-        a, p = self.line.axis, self.line.p
+        """(4, 3) world corners of the front at angle phi, then (4, 3) of the back where the slab is thick."""
+        a, p = self.axis, self.line.p
         lo, hi = p + h0 * self.length * a, p + h1 * self.length * a
         out = width * self.length * (np.cos(phi) * self.b1 + np.sin(phi) * self.b2)
         front = np.array([lo, hi, hi + out, lo + out])
@@ -77,6 +79,10 @@ class Leaf:
             return front
         back = self.thickness * width * self.length * (np.cos(phi) * self.b2 - np.sin(phi) * self.b1)  # axis x out
         return np.concatenate([front, front + back])
+
+    def corners_at(self, width: float, h0: float, h1: float, phis: np.ndarray) -> np.ndarray:
+        """(A, 4 or 8, 3): `corners` at each of the angles phis (A,)."""
+        return np.stack([self.corners(width, h0, h1, phi) for phi in phis])
 
 
 def basis(line: Line) -> tuple[np.ndarray, np.ndarray]:
@@ -93,7 +99,8 @@ def basis(line: Line) -> tuple[np.ndarray, np.ndarray]:
 
 def iou_curves(sil: Silhouettes, leaf: Leaf, size: np.ndarray, frames: list[int], angles: np.ndarray) -> np.ndarray:
     """(F, A) overlap of each frame's mask with the leaf of `size` (width, h0, h1) at each angle."""
-    return np.array([[sil.iou(leaf.corners(*size, phi), i) for phi in angles] for i in frames])
+    shapes = leaf.corners_at(*size, angles)
+    return np.array([sil.ious(shapes, i) for i in frames]).reshape(len(frames), len(angles))
 
 
 def crest(overlap: Callable[[float], float], grid: np.ndarray, values: np.ndarray) -> tuple[float, float]:
@@ -117,6 +124,8 @@ def climb(overlap: Callable[[float], float], lo: float, hi: float) -> tuple[floa
 
 def overlap_at(sil: Silhouettes, leaf: Leaf, size: np.ndarray, frames: list[int]) -> Callable[[float], float]:
     """The mean overlap of `frames`' masks with the leaf of `size` as a function of its angle: what `crest` climbs."""
+    if len(frames) == 1:  # one frame's curve, as `crest` and the refinement climb it: their inner loop
+        return lambda phi: sil.iou(leaf.corners(*size, phi), frames[0])
     return lambda phi: float(np.mean([sil.iou(leaf.corners(*size, phi), i) for i in frames]))
 
 

@@ -60,7 +60,8 @@ class Front:
 
 def pull_curves(sil: Silhouettes, front: Front, frames: list[int], reach: np.ndarray = REACH) -> np.ndarray:
     """(F, len(reach)) overlap of each frame's mask with the front pulled by each of `reach` widths."""
-    return np.array([[sil.iou(front.prism(r * front.width), i) for r in reach] for i in frames])
+    shapes = np.stack([front.prism(r * front.width) for r in reach])
+    return np.array([sil.ious(shapes, i) for i in frames]).reshape(len(frames), len(reach))
 
 
 def front_at(leaf: Leaf, x: np.ndarray, sign: float) -> Front:

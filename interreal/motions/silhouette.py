@@ -21,7 +21,7 @@ silhouettes (its states 0.14-0.37 off), so the gates and the labels refuse most 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import cv2
 import numpy as np
@@ -270,6 +270,19 @@ def candidates(face: np.ndarray, w2c: np.ndarray) -> list[Candidate]:
     return out
 
 
+class Counted(NamedTuple):
+    """What `Silhouettes.iou` needs of one frame, made once: the camera's depth row, the crop's corner (x0, y0) and
+    clipping bound, its mask and occluded pixels as 0/1 bytes, the mask's area."""
+
+    depth: np.ndarray
+    depth_at: float
+    corner: np.ndarray
+    big: int
+    mask: np.ndarray
+    area: int
+    hidden: np.ndarray | None
+
+
 class Silhouettes:
     """Each frame's mask at most `SIDE` large, cropped to the part with a margin: the overlap of a predicted
     silhouette is counted in the crop only (a part is a small share of the image)."""
@@ -284,6 +297,7 @@ class Silhouettes:
         self.w2c = {i: views.w2c[i] for i in frames}
         self.crop: dict[int, tuple[int, int, np.ndarray]] = {}
         self.hidden: dict[int, np.ndarray] = {}  # the crop's pixels an occluder covers
+        self.counted: dict[int, Counted] = {}
         for i in frames:
             m = self.small(views.masks[i])
             ys, xs = np.nonzero(m)
@@ -296,6 +310,10 @@ class Silhouettes:
             occ = views.occluder(i)
             if occ is not None and occ.any():
                 self.hidden[i] = self.small(occ)[box] & ~m[box]
+            hidden = self.hidden.get(i)
+            self.counted[i] = Counted(self.w2c[i][2, :3].copy(), float(self.w2c[i][2, 3]), np.array([x0, y0], float),
+                                      4 * max(m[box].shape), m[box].astype(np.uint8), int(m[box].sum()),
+                                      None if hidden is None else hidden.astype(np.uint8))
 
     def small(self, m: np.ndarray) -> np.ndarray:
         """A full-size mask at the silhouettes' size."""
@@ -304,26 +322,44 @@ class Silhouettes:
         return cv2.resize(m.astype(np.uint8), None, fx=self.scale, fy=self.scale, interpolation=cv2.INTER_AREA) > 0
 
     def iou(self, pts: np.ndarray, i: int) -> float:
-        x0, y0, m = self.crop[i]
-        if ((pts @ self.w2c[i][2, :3] + self.w2c[i][2, 3]) <= 1e-6).any():  # behind the camera
+        """Overlap of the convex silhouette of world points `pts` (N, 3) with frame i's mask (the motion routes'
+        inner loop, a few hundred thousand calls a part: what is fixed per frame is made once, OpenCV counts)."""
+        c = self.counted[i]
+        if ((pts @ c.depth + c.depth_at) <= 1e-6).any():  # behind the camera
             return 0.0
         uv, _ = cv2.projectPoints(pts, *self.pose[i], self.k, self.dist)  # the lens's bend at the vertices
-        big = 4 * max(m.shape)  # a far-off or huge projection would take a rasteriser long to clip: no overlap anyway
-        uv = np.clip(uv.reshape(-1, 2) - (x0, y0), -big, big)
-        pred = np.zeros(m.shape, np.uint8)
-        cv2.fillConvexPoly(pred, cv2.convexHull(np.round(uv * 16).astype(np.int32)), 1, shift=4)
-        pred = pred > 0
-        hidden = self.hidden.get(i)
-        if hidden is not None:  # an arm in front of the part is no evidence against it there
-            pred &= ~hidden
-        union = int((pred | m).sum())
-        return float((pred & m).sum()) / union if union else 0.0
+        return overlap(uv.reshape(-1, 2), c)
+
+    def ious(self, shapes: np.ndarray, i: int) -> np.ndarray:
+        """(A,) `iou` of each of shapes (A, N, 3) on frame i, projected in one call (a grid of angles or pulls)."""
+        c = self.counted[i]
+        pts = shapes.reshape(-1, 3)
+        seen = ((pts @ c.depth + c.depth_at) > 1e-6).reshape(shapes.shape[:2]).all(1)
+        out = np.zeros(len(shapes))
+        if seen.any():
+            uv, _ = cv2.projectPoints(pts, *self.pose[i], self.k, self.dist)
+            uv = uv.reshape(len(shapes), -1, 2)
+            for j in np.flatnonzero(seen):
+                out[j] = overlap(uv[j], c)
+        return out
+
+
+def overlap(uv: np.ndarray, c: Counted) -> float:
+    """IoU of the convex hull of image points uv (N, 2) with the mask `c` counts."""
+    uv = (uv - c.corner).clip(-c.big, c.big)  # a far-off or huge projection would take a rasteriser long to clip
+    pred = np.zeros(c.mask.shape, np.uint8)
+    cv2.fillConvexPoly(pred, cv2.convexHull(np.round(uv * 16).astype(np.int32)), 1, shift=4)
+    inter, shown = cv2.countNonZero(cv2.bitwise_and(pred, c.mask)), cv2.countNonZero(pred)
+    if c.hidden is not None:  # an arm in front of the part is no evidence against it there
+        shown -= cv2.countNonZero(cv2.bitwise_and(pred, c.hidden))
+    union = shown + c.area - inter
+    return inter / union if union else 0.0
 
 
 def best_displacement(sil: Silhouettes, cand: Candidate, face: np.ndarray, i: int, grid: np.ndarray
                       ) -> tuple[float, float]:
     """(displacement, IoU) of frame i: the best grid point, refined by a parabola through it and its neighbours."""
-    vals = np.array([sil.iou(cand.moved(face, x), i) for x in grid])
+    vals = sil.ious(np.stack([cand.moved(face, x) for x in grid]), i)
     j = int(np.argmax(vals))
     x = float(grid[j])
     if 0 < j < len(grid) - 1:

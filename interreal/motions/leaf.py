@@ -71,18 +71,29 @@ class Leaf:
 
     def corners(self, width: float, h0: float, h1: float, phi: float) -> np.ndarray:
         """(4, 3) world corners of the front at angle phi, then (4, 3) of the back where the slab is thick."""
+        return self.turning(width, h0, h1)(phi)
+
+    def turning(self, width: float, h0: float, h1: float) -> Callable[[float], np.ndarray]:
+        """`corners` of the leaf of this size as a function of its angle: what does not turn is made once (a climb
+        asks for a few hundred thousand angles a part)."""
         a, p = self.axis, self.line.p
         lo, hi = p + h0 * self.length * a, p + h1 * self.length * a
-        out = width * self.length * (np.cos(phi) * self.b1 + np.sin(phi) * self.b2)
-        front = np.array([lo, hi, hi + out, lo + out])
-        if not self.thickness:
-            return front
-        back = self.thickness * width * self.length * (np.cos(phi) * self.b2 - np.sin(phi) * self.b1)  # axis x out
-        return np.concatenate([front, front + back])
+        wide = width * self.length
+        deep = self.thickness * width * self.length
+
+        def at(phi: float) -> np.ndarray:
+            cos, sin = np.cos(phi), np.sin(phi)
+            out = wide * (cos * self.b1 + sin * self.b2)
+            front = np.array([lo, hi, hi + out, lo + out])
+            if not self.thickness:
+                return front
+            return np.concatenate([front, front + deep * (cos * self.b2 - sin * self.b1)])  # axis x out
+        return at
 
     def corners_at(self, width: float, h0: float, h1: float, phis: np.ndarray) -> np.ndarray:
         """(A, 4 or 8, 3): `corners` at each of the angles phis (A,)."""
-        return np.stack([self.corners(width, h0, h1, phi) for phi in phis])
+        at = self.turning(width, h0, h1)
+        return np.stack([at(phi) for phi in phis])
 
 
 def basis(line: Line) -> tuple[np.ndarray, np.ndarray]:
@@ -124,9 +135,10 @@ def climb(overlap: Callable[[float], float], lo: float, hi: float) -> tuple[floa
 
 def overlap_at(sil: Silhouettes, leaf: Leaf, size: np.ndarray, frames: list[int]) -> Callable[[float], float]:
     """The mean overlap of `frames`' masks with the leaf of `size` as a function of its angle: what `crest` climbs."""
+    at = leaf.turning(*size)
     if len(frames) == 1:  # one frame's curve, as `crest` and the refinement climb it: their inner loop
-        return lambda phi: sil.iou(leaf.corners(*size, phi), frames[0])
-    return lambda phi: float(np.mean([sil.iou(leaf.corners(*size, phi), i) for i in frames]))
+        return lambda phi: sil.iou(at(phi), frames[0])
+    return lambda phi: float(np.mean([sil.iou(at(phi), i) for i in frames]))
 
 
 def halves(keyed: np.ndarray, rest: np.ndarray) -> list[float]:

@@ -348,7 +348,7 @@ def overlap(uv: np.ndarray, c: Counted) -> float:
     """IoU of the convex hull of image points uv (N, 2) with the mask `c` counts."""
     uv = (uv - c.corner).clip(-c.big, c.big)  # a far-off or huge projection would take a rasteriser long to clip
     pred = np.zeros(c.mask.shape, np.uint8)
-    cv2.fillConvexPoly(pred, cv2.convexHull(np.round(uv * 16).astype(np.int32)), 1, shift=4)
+    cv2.fillConvexPoly(pred, cv2.convexHull((uv * 16).round().astype(np.int32)), 1, shift=4)
     inter, shown = cv2.countNonZero(cv2.bitwise_and(pred, c.mask)), cv2.countNonZero(pred)
     if c.hidden is not None:  # an arm in front of the part is no evidence against it there
         shown -= cv2.countNonZero(cv2.bitwise_and(pred, c.hidden))

@@ -193,7 +193,8 @@ def test_overlaps_counted_at_once_equal_the_plain_count_with_an_occluder_and_a_p
                              [[[0.0, 0.0, -1.0]] + [[0.1, 0.1, 2.0]] * 7],  # one corner behind the camera
                              [[[50.0, 50.0, 1.0]] * 8]])  # far off the image
     for i in (0, 1):
-        x0, y0, m = sil.crop[i]
+        (x0, y0), m = sil.crop[i].corner, sil.crop[i].mask > 0
+        hidden = np.zeros_like(m) if sil.crop[i].hidden is None else sil.crop[i].hidden > 0
         plain = []
         for s in shapes:
             if (s @ w2c[i, 2, :3] + w2c[i, 2, 3] <= 1e-6).any():
@@ -203,9 +204,9 @@ def test_overlaps_counted_at_once_equal_the_plain_count_with_an_occluder_and_a_p
             uv = np.clip(uv.reshape(-1, 2) - (x0, y0), -4 * max(m.shape), 4 * max(m.shape))
             pred = np.zeros(m.shape, np.uint8)
             cv2.fillConvexPoly(pred, cv2.convexHull(np.round(uv * 16).astype(np.int32)), 1, shift=4)
-            pred = (pred > 0) & ~sil.hidden.get(i, np.zeros_like(m))
+            pred = (pred > 0) & ~hidden
             plain.append((pred & m).sum() / max(1, (pred | m).sum()))
         at_once = sil.ious(shapes, i)
         assert at_once.tolist() == [sil.iou(s, i) for s in shapes] == plain
         assert at_once[-2] == 0.0 and at_once[-1] == 0.0 and 0.2 < at_once.max() < 1.0
-    assert 1 in sil.hidden and sil.hidden[1].any() and 0 not in sil.hidden
+    assert sil.crop[1].hidden is not None and sil.crop[1].hidden.any() and sil.crop[0].hidden is None

@@ -270,9 +270,10 @@ def candidates(face: np.ndarray, w2c: np.ndarray) -> list[Candidate]:
     return out
 
 
-class Counted(NamedTuple):
-    """What `Silhouettes.iou` needs of one frame, made once: the camera's depth row, the crop's corner (x0, y0) and
-    clipping bound, its mask and occluded pixels as 0/1 bytes, the mask's area."""
+class Crop(NamedTuple):
+    """One frame's box around the part, with what `Silhouettes.iou` needs of it made once: the camera's depth row, the
+    box's corner (x0, y0) and clipping bound, the mask and the pixels an occluder hides in it as 0/1 bytes (the
+    occluded ones None where nothing is), the mask's area."""
 
     depth: np.ndarray
     depth_at: float
@@ -294,10 +295,7 @@ class Silhouettes:
         self.k[:2] *= self.scale
         self.dist = np.zeros(5) if views.dist is None else np.asarray(views.dist, float)
         self.pose = {i: (cv2.Rodrigues(views.w2c[i][:3, :3])[0], views.w2c[i][:3, 3]) for i in frames}
-        self.w2c = {i: views.w2c[i] for i in frames}
-        self.crop: dict[int, tuple[int, int, np.ndarray]] = {}
-        self.hidden: dict[int, np.ndarray] = {}  # the crop's pixels an occluder covers
-        self.counted: dict[int, Counted] = {}
+        self.crop: dict[int, Crop] = {}  # the frames the part shows in
         for i in frames:
             m = self.small(views.masks[i])
             ys, xs = np.nonzero(m)
@@ -306,14 +304,11 @@ class Silhouettes:
             mx, my = (np.ptp(xs) + 1) // 2 + 2, (np.ptp(ys) + 1) // 2 + 2
             x0, y0 = max(0, xs.min() - mx), max(0, ys.min() - my)
             box = np.s_[y0:ys.max() + 1 + my, x0:xs.max() + 1 + mx]
-            self.crop[i] = (x0, y0, m[box])
-            occ = views.occluder(i)
+            m, occ, hidden = m[box], views.occluder(i), None
             if occ is not None and occ.any():
-                self.hidden[i] = self.small(occ)[box] & ~m[box]
-            hidden = self.hidden.get(i)
-            self.counted[i] = Counted(self.w2c[i][2, :3].copy(), float(self.w2c[i][2, 3]), np.array([x0, y0], float),
-                                      4 * max(m[box].shape), m[box].astype(np.uint8), int(m[box].sum()),
-                                      None if hidden is None else hidden.astype(np.uint8))
+                hidden = (self.small(occ)[box] & ~m).astype(np.uint8)
+            self.crop[i] = Crop(views.w2c[i][2, :3].copy(), float(views.w2c[i][2, 3]), np.array([x0, y0], float),
+                                4 * max(m.shape), m.astype(np.uint8), int(m.sum()), hidden)
 
     def small(self, m: np.ndarray) -> np.ndarray:
         """A full-size mask at the silhouettes' size."""
@@ -324,7 +319,7 @@ class Silhouettes:
     def iou(self, pts: np.ndarray, i: int) -> float:
         """Overlap of the convex silhouette of world points `pts` (N, 3) with frame i's mask (the motion routes'
         inner loop, a few hundred thousand calls a part: what is fixed per frame is made once, OpenCV counts)."""
-        c = self.counted[i]
+        c = self.crop[i]
         if ((pts @ c.depth + c.depth_at) <= 1e-6).any():  # behind the camera
             return 0.0
         uv, _ = cv2.projectPoints(pts, *self.pose[i], self.k, self.dist)  # the lens's bend at the vertices
@@ -332,7 +327,7 @@ class Silhouettes:
 
     def ious(self, shapes: np.ndarray, i: int) -> np.ndarray:
         """(A,) `iou` of each of shapes (A, N, 3) on frame i, projected in one call (a grid of angles or pulls)."""
-        c = self.counted[i]
+        c = self.crop[i]
         pts = shapes.reshape(-1, 3)
         seen = ((pts @ c.depth + c.depth_at) > 1e-6).reshape(shapes.shape[:2]).all(1)
         out = np.zeros(len(shapes))
@@ -344,8 +339,8 @@ class Silhouettes:
         return out
 
 
-def overlap(uv: np.ndarray, c: Counted) -> float:
-    """IoU of the convex hull of image points uv (N, 2) with the mask `c` counts."""
+def overlap(uv: np.ndarray, c: Crop) -> float:
+    """IoU of the convex hull of image points uv (N, 2) with the mask of the crop `c`."""
     uv = (uv - c.corner).clip(-c.big, c.big)  # a far-off or huge projection would take a rasteriser long to clip
     pred = np.zeros(c.mask.shape, np.uint8)
     cv2.fillConvexPoly(pred, cv2.convexHull((uv * 16).round().astype(np.int32)), 1, shift=4)

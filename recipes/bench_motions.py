@@ -175,7 +175,7 @@ def run_part(ds_path: Path, cap: Path, o: int, route: str, truth_masks: bool = F
     truth = truth_articulation(cap, ds_path)[name]
     part = ds_path / "motions" / f"object_{o}"
     cfg = motions.MotionConfig()
-    names = motions.part_masks(ds, o, part / "masks", cfg, keep=set(np.flatnonzero(given[:, o]).tolist()))
+    names = motions.part_masks(ds, o, part / "masks", cfg, keep=set(np.flatnonzero(given[:, o]).tolist())).names
     t0 = time.perf_counter()
     motion, fig = motions.measure_part(colmap.load_pycolmap(False), ds, names, part, states[:, o], known[:, o], cfg,
                                        labelled=given[:, o], obj=o, routes=None if route == "stage" else (route,))

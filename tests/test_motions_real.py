@@ -3,6 +3,7 @@ orientation only (a wrong one is named), the part's masks less the transient lay
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -216,7 +217,7 @@ def test_states_follow_the_labels_direction_and_partial_ends():
 
 def test_part_masks_leave_out_transient_pixels_and_cap_the_frames(tmp_path):
     """The transient layer's pixels (a hand on the lid) never reach the part's SfM masks; at most `max_frames`
-    frames are kept, spread evenly, with every labelled frame among them."""
+    frames are kept, spread evenly, with every labelled frame among them; the frames shown are all counted."""
     import cv2
 
     from interreal.motions import MotionConfig, part_masks
@@ -230,14 +231,41 @@ def test_part_masks_leave_out_transient_pixels_and_cap_the_frames(tmp_path):
     hand = np.zeros((h, w), bool)
     hand[10:20, 10:20] = True
     cfg = MotionConfig(erode=0, min_pixels=100, max_frames=10)
-    names = part_masks(ds, 0, tmp_path / "m", cfg, keep={7, 13},
-                       exclude=lambda ds_, f, hw, c: hand if f.fid == "00007" else None)
+    names, shown = part_masks(ds, 0, tmp_path / "m", cfg, keep={7, 13},
+                              exclude=lambda ds_, f, hw, c: hand if f.fid == "00007" else None)
     idx = [int(Path(n).stem.split("_")[1]) for n in names]
     assert len(idx) <= 12 and {0, 7, 13, 29} <= set(idx)
+    assert shown == 30  # every frame shows the part: the cap is not what a measured count is reported against
     out = cv2.imread(str(tmp_path / "m" / "frame_00007.png.png"), cv2.IMREAD_GRAYSCALE)
     assert out[15, 15] == 0 and out[30, 40] == 255
     other = cv2.imread(str(tmp_path / "m" / "frame_00000.png.png"), cv2.IMREAD_GRAYSCALE)
     assert other[15, 15] == 255
+
+
+def test_a_route_over_every_frame_is_reported_against_every_frame_that_shows_the_part(tmp_path, monkeypatch):
+    """The part's own reconstruction is matched on at most `max_frames` frames, but the pose-free routes read every
+    frame: the report counts what they measured against the frames that show the part, never against the cap
+    (it once read "143 of 91 frames")."""
+    from conftest import make_tiny_dataset
+
+    from interreal.motions import estimate_motions
+    from interreal.motions import stage as motions
+
+    ds = make_tiny_dataset(tmp_path / "ds", n_frames=12, size=(64, 48), n_objects=1)
+
+    def every_frame(pc, ds_, names, part, states, known, cfg, step, labelled=None, obj=None):
+        assert len(names) <= 5  # the reconstruction's frames: capped
+        n = len(ds_.frames)
+        fig = {"route": "edge", "registered": n, "accepted": True, "flagged_labels": [], "label_check": [],
+               "frame_states": [[i, i / (n - 1)] for i in range(n)], "routes": {}}
+        return Articulation("hinge", np.array([0.0, 0.0, 1.0]), np.zeros(3), 1.0), fig
+
+    monkeypatch.setattr(motions, "measure_part", every_frame)
+    fig = estimate_motions(ds, max_frames=5, min_pixels=10, min_registered=2, erode=0)
+    part = fig["parts"]["door"]
+    assert part["measured_frames"] == part["shown_frames"] == 12, part
+    step = json.loads((ds / "reports" / "motions.json").read_text())["steps"]["object 0"]
+    assert step["frames_shown"] == 12 and step["frames_matched"] <= 5, step
 
 
 def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:

@@ -12,9 +12,9 @@ A new route is a module here that returns what `fit.articulate` reads.
 """
 
 from .fit import PartViews, fit_motion
-from .stage import (MotionConfig, add_arguments, estimate_motions, flagged_labels, frame_state_rows, main, measure_part,
+from .stage import (MotionConfig, PartMasks, add_arguments, estimate_motions, flagged_labels, frame_state_rows, main, measure_part,
                     part_line, part_masks, part_pairs, part_summary, routes_text)
 
-__all__ = ["MotionConfig", "PartViews", "add_arguments", "estimate_motions", "fit_motion", "flagged_labels",
+__all__ = ["MotionConfig", "PartMasks", "PartViews", "add_arguments", "estimate_motions", "fit_motion", "flagged_labels",
            "frame_state_rows", "main", "measure_part", "part_line", "part_masks", "part_pairs", "part_summary",
            "routes_text"]

@@ -29,7 +29,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -105,16 +105,26 @@ def spread(shown: list[int], keep: set[int], most: int) -> list[int]:
     return sorted(pick | (keep & set(shown)))
 
 
+class PartMasks(NamedTuple):
+    """The frames a part's own reconstruction is matched on, and how many frames show the part at all."""
+
+    names: list[str]  # image names, at most `MotionConfig.max_frames`
+    shown: int  # frames whose mask holds `min_pixels` of the part: what the pose-free routes count against
+
+
 def part_masks(ds, obj: int, out: Path, cfg: MotionConfig, keep: set[int] = frozenset(),
-               exclude=transient_pixels) -> list[str]:
+               exclude=transient_pixels) -> PartMasks:
     """COLMAP masks (<image name>.png, 255 = use) of object `obj`'s eroded pixels less `exclude(ds, frame, hw,
     cfg)` (None: nothing excluded); the image names that show it, at most `cfg.max_frames` of them (dataset
-    positions in `keep`, the labelled frames, always among them)."""
+    positions in `keep`, the labelled frames, always among them), and the count of frames that show it at all
+    (a measured count is reported against it: the cap must not read as fewer frames than were measured)."""
     out.mkdir(parents=True, exist_ok=True)
     kernel = np.ones((2 * cfg.erode + 1,) * 2, np.uint8)
     shown: dict[int, np.ndarray] = {}
+    seen = 0
     for i, f in enumerate(ds.frames):
         m = ds.load_mask(f)[..., obj].astype(np.uint8) * 255
+        seen += int(np.count_nonzero(m)) >= cfg.min_pixels
         if cfg.erode:
             m = cv2.erode(m, kernel)
         gone = exclude(ds, f, m.shape, cfg) if exclude is not None else None
@@ -127,7 +137,7 @@ def part_masks(ds, obj: int, out: Path, cfg: MotionConfig, keep: set[int] = froz
         name = Path(ds.frames[i].file_path).name
         atomic.write_image(out / f"{name}.png", shown[i])
         names.append(name)
-    return names
+    return PartMasks(names, max(seen, len(names)))
 
 
 def part_pairs(n: int, overlap: int, key_every: int) -> list[tuple[int, int]]:
@@ -360,7 +370,7 @@ def _measure_part_sfm(pc, ds, names: list[str], part: Path, states: np.ndarray, 
     best[1]["attempts"] = a + 1
     if best[0] is None:
         best[1]["reason"] = (f"its own reconstruction registered at most {best[1]['registered']} of the {len(names)} "
-                             f"frames it shows in, {most_known} of them at a known state (need {cfg.min_registered} "
+                             f"frames matched, {most_known} of them at a known state (need {cfg.min_registered} "
                              f"and {cfg.min_known}), over {a + 1} attempt(s)"
                              + (f"; stopped by {best[1]['stopped']}" if best[1].get("stopped") else ""))
     return best
@@ -388,7 +398,7 @@ def measure_part_pnp(ds, names: list[str], mask_dir: Path, states: np.ndarray, k
     pv, fig = pnp_views(grays, masks, c2w, k, intr.dist(), refs, most=min(cfg.max_features, 1500))
     if pv is None or len(pv.frames) < cfg.min_registered or int(known[pv.frames].sum()) < cfg.min_known:
         n, n_known = (0, 0) if pv is None else (len(pv.frames), int(known[pv.frames].sum()))
-        reason = (f"located {n} of the {len(names)} frames it shows in, {n_known} at a known state (need "
+        reason = (f"located {n} of the {len(names)} frames matched, {n_known} at a known state (need "
                   f"{cfg.min_registered} and {cfg.min_known}), from {fig.get('points', 0)} points triangulated where "
                   f"it rests")
         return None, dict(fig, registered=n, reason=reason)
@@ -463,8 +473,8 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
         for o, name in enumerate(ds.object_names):
             part = work / f"object_{o}"
             with rep.step(f"object {o}") as st:
-                names = part_masks(ds, o, part / "masks", cfg, keep=set(np.flatnonzero(given[:, o]).tolist()))
-                st["frames_shown"] = len(names)
+                names, shown = part_masks(ds, o, part / "masks", cfg, keep=set(np.flatnonzero(given[:, o]).tolist()))
+                st["frames_shown"], st["frames_matched"] = shown, len(names)
                 if len(names) < cfg.min_registered:
                     rep.warn(f"'{name}' shows in only {len(names)} frames: no motion measured (the k-axis alone "
                              f"will move it)", cause="motion-unseen", object=name)
@@ -483,7 +493,7 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                 fids = [f.fid for f in ds.frames]
                 st.update({k: v if not isinstance(v, float) or np.isfinite(v) else None for k, v in fig.items()})
                 if motion is None:
-                    rep.warn(f"'{name}': no route measured a motion in the {len(names)} frames it shows in: "
+                    rep.warn(f"'{name}': no route measured a motion in the {shown} frames it shows in: "
                              + "; ".join(f"{r}: {v['reason']}" for r, v in fig.get("routes", {}).items())
                              + "; label more frames where it moves, or film it with more texture in view",
                              cause="motion-unregistered", object=name)
@@ -494,7 +504,7 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                 # every registered frame's measured state, by frame id: what training fits the states to
                 # (`Articulation.measured_states`), eyeballed labels being coarser than the geometry
                 motion.extra["frame_states"] = {fids[f]: m for f, m in fig.get("frame_states", [])}
-                measured_by = f"{fig.get('route', '?')} ({fig['registered']} of the {len(names)} frames it shows in)"
+                measured_by = f"{fig.get('route', '?')} ({fig['registered']} of the {shown} frames it shows in)"
                 if not fig["accepted"]:
                     rep.warn(f"'{name}': the {motion.kind} measured by {measured_by} is not used: {fig['reason']}; "
                              f"{disagreement_text(fig.get('label_check', []), fids)}{routes_text(fig)}; check "
@@ -511,7 +521,7 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                              f"offers the measured states as the fix", cause="label-disagrees", object=name,
                              flagged=_flag_rows(fig, fids))
                 motions[name] = motion
-                parts[name] = part_summary(motion, fig, len(names))
+                parts[name] = part_summary(motion, fig, shown)
         write_articulation(ds_path, motions, {"source": "interreal motions"})
         rep.figures.update(objects={n: m.kind for n, m in motions.items()}, measured=len(motions),
                            total=ds.n_objects, parts=parts)

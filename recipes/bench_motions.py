@@ -156,7 +156,7 @@ def eyeball(labels: np.ndarray, given: np.ndarray, seed: int, spread: float) -> 
 
 def run_part(ds_path: Path, cap: Path, o: int, route: str, truth_masks: bool = False,
              eyeballed: float = 0.0, seed: int = 0) -> dict[str, Any]:
-    from interreal.motions import stage as motions
+    from interreal.motions import part as motions
     from interreal.dataset import known_states, load_dataset
     from interreal.sfm import colmap
     from interreal.synth.truth import truth_articulation

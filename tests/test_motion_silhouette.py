@@ -93,7 +93,7 @@ def test_views_that_barely_move_are_refused_with_the_cause():
 
 def test_motions_stage_takes_the_silhouette_route(tmp_path):
     """`--route silhouette` tries it first; an accepted motion ends the search (no SfM, no PnP is run)."""
-    from interreal.motions import stage as motions
+    from interreal.motions import part as motions
 
     ds, truth, st, kn, labelled = capture("slide")
     cfg = motions.MotionConfig(route="silhouette", min_pixels=50)

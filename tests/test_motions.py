@@ -112,7 +112,7 @@ def test_measure_part_tries_another_mapper_seed_when_the_first_model_is_bent(mon
     """The geometry judges the part's reconstruction: a model bent by a drifting scale (positions that miss a rigid
     motion's by more than MAX_RESIDUAL of how far it moves the part) is mapped again with the next seed (on the
     same matches), and the best attempt is kept."""
-    from interreal.motions import stage as motions
+    from interreal.motions import part as motions
 
     truth, states, known, good = _slide_case(seed=4, wild=0)
     bent = PartViews(good.frames, good.rot.copy(), good.u * np.linspace(1, 3, len(good.frames))[:, None],
@@ -276,12 +276,13 @@ def test_motion_flags_come_from_the_config_fields():
     p = argparse.ArgumentParser()
     add_arguments(p)
     flags = {s for a in p._actions for s in a.option_strings} - {"-h", "--help"}
-    assert flags == {"--erode", "--min-pixels", "--route", "--trust-labels", "--verbose", "--force"}
+    assert flags == {"--erode", "--min-pixels", "--route", "--trust-labels", "--workers", "--verbose", "--force"}
     defaults = asdict(MotionConfig())
     opts = values_from_args(MotionConfig, p.parse_args(["ds"]))
-    assert opts == {k: defaults[k] for k in ("erode", "min_pixels", "route", "trust_labels", "verbose")}
+    assert opts == {k: defaults[k] for k in ("erode", "min_pixels", "route", "trust_labels", "workers", "verbose")}
     opts = values_from_args(MotionConfig, p.parse_args(["ds", "--erode", "4", "--route", "pnp", "--verbose"]))
-    assert opts == {"erode": 4, "min_pixels": 400, "route": "pnp", "trust_labels": False, "verbose": True}
+    assert opts == {"erode": 4, "min_pixels": 400, "route": "pnp", "trust_labels": False, "workers": 0,
+                    "verbose": True}
     with pytest.raises(SystemExit):
         p.parse_args(["ds", "--route", "icp"])
     with pytest.raises(InputError, match="unknown motion options"):

@@ -249,7 +249,7 @@ def test_a_route_over_every_frame_is_reported_against_every_frame_that_shows_the
     from conftest import make_tiny_dataset
 
     from interreal.motions import estimate_motions
-    from interreal.motions import stage as motions
+    from interreal.motions import part as motions
 
     ds = make_tiny_dataset(tmp_path / "ds", n_frames=12, size=(64, 48), n_objects=1)
 
@@ -394,7 +394,7 @@ def test_part_views_follow_the_parts_middle_so_a_wobbling_pose_keeps_the_slide_d
     """A 2 deg wobble of the part's pose about its own middle swings the reconstruction's origin (a metre away) by
     3 cm: followed there, the drawer's direction came out degrees off; followed at its middle, within half a
     degree."""
-    from interreal.motions import stage as motions
+    from interreal.motions import part as motions
 
     def axis_error() -> float:
         errs = []

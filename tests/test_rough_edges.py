@@ -186,7 +186,7 @@ def test_thread_trial_keeps_the_faster_of_many_and_one_thread():
 def test_motions_name_the_labels_that_disagree_and_report_progress(monkeypatch, tmp_path):
     import numpy as np
 
-    from interreal.motions import stage as motions
+    from interreal.motions import part, stage as motions
     from test_motions import _slide_case
 
     truth, states, known, pv = _slide_case(seed=4, wild=0)
@@ -203,11 +203,11 @@ def test_motions_name_the_labels_that_disagree_and_report_progress(monkeypatch, 
     assert all(f"{fids[f]} (label 1.00" in text for f in bad) and "measured states" in text
     # progress: one call as each phase starts
     phases = []
-    monkeypatch.setattr(motions, "match_part", lambda *a, **k: tmp_path / "database.db")
-    monkeypatch.setattr(motions, "map_part", lambda *a, **k: 0)
-    monkeypatch.setattr(motions, "part_views", lambda rec, ds: pv)
-    motions.measure_part(None, None, [], tmp_path, states, known, motions.MotionConfig(attempts=3, route="sfm"),
-                         phases.append)
+    monkeypatch.setattr(part, "match_part", lambda *a, **k: tmp_path / "database.db")
+    monkeypatch.setattr(part, "map_part", lambda *a, **k: 0)
+    monkeypatch.setattr(part, "part_views", lambda rec, ds: pv)
+    part.measure_part(None, None, [], tmp_path, states, known, part.MotionConfig(attempts=3, route="sfm"),
+                      phases.append)
     assert phases == ["matching", "reconstruction 1/3"]
 
 

@@ -1,6 +1,6 @@
 """A part's per-frame poses without its own reconstruction: triangulate it once, then PnP every frame.
 
-The part's own SfM (`motions.stage`) must find the camera poses *and* the part's shape from the part's pixels
+The part's own SfM (`motions.part`) must find the camera poses *and* the part's shape from the part's pixels
 alone; a part with little texture (a grey cabinet door: 9 of 200 frames registered) gives it too little. Here the
 camera poses are already known (transforms.json), so far less is needed:
 1. a reference: a few frames where the part holds one state (frames labelled alike, or the frames nearest a

@@ -268,6 +268,59 @@ def test_a_route_over_every_frame_is_reported_against_every_frame_that_shows_the
     assert step["frames_shown"] == 12 and step["frames_matched"] <= 5, step
 
 
+def _strip_times(o):
+    """A report without what changes run to run (seconds, dates, the machine)."""
+    if isinstance(o, dict):
+        return {k: _strip_times(v) for k, v in o.items()
+                if k not in ("seconds", "wall_s", "started", "finished", "environment", "settings")}
+    if isinstance(o, list):
+        return [_strip_times(v) for v in o]
+    return o
+
+
+def test_parts_measured_at_once_report_what_one_after_another_does(tmp_path):
+    """Two objects measured in processes of their own (`--workers 2`) give the report a run one part after another
+    gives: the same figures, in the objects' order, every route's reason."""
+    import shutil
+
+    from conftest import make_tiny_dataset
+
+    from interreal.motions import estimate_motions
+
+    one = make_tiny_dataset(tmp_path / "one", n_frames=12, size=(64, 48), n_objects=2)
+    two = tmp_path / "two"
+    shutil.copytree(one, two)
+    opts = dict(min_pixels=10, min_registered=4, erode=0, attempts=1)
+    a = estimate_motions(one, workers=1, **opts)
+    b = estimate_motions(two, workers=2, **opts)
+    assert _strip_times(a) == _strip_times(b)
+    ra, rb = (json.loads((d / "reports" / "motions.json").read_text()) for d in (one, two))
+    assert list(ra["steps"]) == list(rb["steps"]) == ["object 0", "object 1"]
+    assert _strip_times(ra["steps"]) == _strip_times(rb["steps"])
+    assert [w["message"] for w in ra["warnings"]] == [w["message"] for w in rb["warnings"]]
+    assert all(st["frames_shown"] == 12 and st["routes"] for st in rb["steps"].values())
+
+
+def die(*args, **kwargs):
+    """A part's process that dies without a word (as a native crash would)."""
+    import os
+
+    os._exit(3)
+
+
+def test_a_part_whose_process_dies_is_one_clear_error(tmp_path, monkeypatch):
+    from conftest import make_tiny_dataset
+
+    from interreal.errors import StageError
+    from interreal.motions import estimate_motions
+    from interreal.motions import stage
+
+    ds = make_tiny_dataset(tmp_path / "ds", n_frames=6, size=(64, 48), n_objects=2)
+    monkeypatch.setattr(stage, "measure_object_at", die)
+    with pytest.raises(StageError, match="process measuring 'door' died.*--workers 1"):
+        estimate_motions(ds, workers=2, min_pixels=10, erode=0)
+
+
 def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
     """c2w (4x4, OpenCV axes: x right, y down, z forward) of a camera at `eye` looking at `target` (world +y up)."""
     z = target - eye

@@ -29,6 +29,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Iterator
@@ -38,7 +39,7 @@ import numpy as np
 from .. import provenance
 from ..conventions import ARTICULATION_FILE
 from ..dataset import Articulation, known_states, load_dataset, write_articulation
-from ..errors import InputError
+from ..errors import InputError, StageError
 from ..options import add_flags, config_from, values_from_args
 from ..report import StageReport, finished_with, fingerprint, read_report, warning_lines
 from ..sfm import colmap
@@ -141,7 +142,12 @@ def measured_objects(ds, cfg: MotionConfig, states: np.ndarray, known: np.ndarra
         futures = [pool.submit(measure_object_at, ds.root, o, cfg, states[:, o], known[:, o], given[:, o], o)
                    for o in range(n)]
         for o, future in enumerate(futures):
-            yield o, future.result()
+            try:
+                result = future.result()
+            except BrokenProcessPool as exc:
+                raise StageError(f"the process measuring '{ds.object_names[o]}' died ({exc}): run `interreal motions "
+                                 f"{ds.root} --workers 1` to measure the parts one after another and see why") from exc
+            yield o, result
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 

@@ -321,6 +321,58 @@ def test_a_part_whose_process_dies_is_one_clear_error(tmp_path, monkeypatch):
         estimate_motions(ds, workers=2, min_pixels=10, erode=0)
 
 
+def sleep_long(*args, **kwargs):
+    """A part's process that takes minutes; it marks that it started (`PART_STARTED`)."""
+    import os
+    import time
+
+    Path(os.environ["PART_STARTED"]).touch()
+    time.sleep(600)
+
+
+RUN_KILLED = """
+import sys
+sys.path[:0] = {paths!r}
+from conftest import make_tiny_dataset
+from interreal.motions import estimate_motions, stage
+import test_motions_real
+
+if __name__ == "__main__":
+    stage.measure_object_at = test_motions_real.sleep_long
+    ds = make_tiny_dataset(__import__("pathlib").Path({ds!r}), n_frames=6, size=(64, 48), n_objects=2)
+    estimate_motions(ds, workers=2, min_pixels=10, erode=0)
+"""
+
+
+def test_parts_processes_end_when_the_command_is_killed(tmp_path):
+    """`interreal process` SIGKILLed while its parts are measured: the parts' processes end too, so what reads the
+    command's output sees it end (they once held its stderr open for ever, and a test waiting on it hung)."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    here = str(Path(__file__).parent)
+    script = tmp_path / "run.py"
+    script.write_text(RUN_KILLED.format(paths=[here, str(Path(here).parent)], ds=str(tmp_path / "ds")))
+    started = tmp_path / "started"
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env=dict(os.environ, PART_STARTED=str(started)))
+    try:
+        for _ in range(1200):  # the parts' processes import and start (seconds; a minute on a loaded machine)
+            if started.exists() or proc.poll() is not None:
+                break
+            time.sleep(0.1)
+        assert started.exists(), proc.communicate(timeout=60)[1].decode()[-2000:]
+    finally:
+        proc.kill()
+    proc.wait()
+    try:
+        proc.communicate(timeout=120)  # EOF only once every process holding the pipes is gone
+    except subprocess.TimeoutExpired:
+        pytest.fail("the parts' processes outlived the killed command and hold its pipes open")
+
+
 def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
     """c2w (4x4, OpenCV axes: x right, y down, z forward) of a camera at `eye` looking at `target` (world +y up)."""
     z = target - eye

@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import threading
+import time
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict
@@ -125,6 +127,17 @@ def worker_count(cfg: MotionConfig, parts: int) -> int:
     return max(1, min(parts, cfg.workers or cores))
 
 
+def follow_parent(parent: int) -> None:
+    """A part's process ends soon after the command that started it is gone (killed, SIGKILL included): left
+    waiting, it would hold that command's terminal and pipes open for ever."""
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="follow-parent", daemon=True).start()
+
+
 def measured_objects(ds, cfg: MotionConfig, states: np.ndarray, known: np.ndarray, given: np.ndarray
                      ) -> Iterator[tuple[int, ObjectResult]]:
     """(object, its measurement) in the objects' order. With several parts and cores each part is measured in a
@@ -137,7 +150,8 @@ def measured_objects(ds, cfg: MotionConfig, states: np.ndarray, known: np.ndarra
         for o in range(n):
             yield o, measure_object(ds, o, cfg, states[:, o], known[:, o], given[:, o])
         return
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=follow_parent,
+                               initargs=(os.getpid(),))
     try:
         futures = [pool.submit(measure_object_at, ds.root, o, cfg, states[:, o], known[:, o], given[:, o], o)
                    for o in range(n)]

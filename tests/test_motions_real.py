@@ -330,23 +330,23 @@ def sleep_long(*args, **kwargs):
     time.sleep(600)
 
 
-RUN_KILLED = """
+RUN_MEASURING = """
 import sys
 sys.path[:0] = {paths!r}
 from conftest import make_tiny_dataset
-from interreal.motions import estimate_motions, stage
+from interreal import cli
+from interreal.motions import stage
 import test_motions_real
 
 if __name__ == "__main__":
     stage.measure_object_at = test_motions_real.sleep_long
     ds = make_tiny_dataset(__import__("pathlib").Path({ds!r}), n_frames=6, size=(64, 48), n_objects=2)
-    estimate_motions(ds, workers=2, min_pixels=10, erode=0)
+    sys.exit(cli.main(["motions", str(ds), "--workers", "2", "--min-pixels", "10", "--erode", "0"]))
 """
 
 
-def test_parts_processes_end_when_the_command_is_killed(tmp_path):
-    """`interreal process` SIGKILLed while its parts are measured: the parts' processes end too, so what reads the
-    command's output sees it end (they once held its stderr open for ever, and a test waiting on it hung)."""
+def measuring(tmp_path: Path):
+    """`interreal motions` on a two-part dataset, started, its parts' processes measuring (for minutes)."""
     import os
     import subprocess
     import sys
@@ -354,23 +354,49 @@ def test_parts_processes_end_when_the_command_is_killed(tmp_path):
 
     here = str(Path(__file__).parent)
     script = tmp_path / "run.py"
-    script.write_text(RUN_KILLED.format(paths=[here, str(Path(here).parent)], ds=str(tmp_path / "ds")))
+    script.write_text(RUN_MEASURING.format(paths=[here, str(Path(here).parent)], ds=str(tmp_path / "ds")))
     started = tmp_path / "started"
     proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             env=dict(os.environ, PART_STARTED=str(started)))
-    try:
-        for _ in range(1200):  # the parts' processes import and start (seconds; a minute on a loaded machine)
-            if started.exists() or proc.poll() is not None:
-                break
-            time.sleep(0.1)
-        assert started.exists(), proc.communicate(timeout=60)[1].decode()[-2000:]
-    finally:
+    for _ in range(1200):  # the parts' processes import and start (seconds; a minute on a loaded machine)
+        if started.exists() or proc.poll() is not None:
+            break
+        time.sleep(0.1)
+    if not started.exists():
         proc.kill()
-    proc.wait()
+        pytest.fail(proc.communicate(timeout=60)[1].decode()[-2000:])
+    return proc
+
+
+def outputs(proc) -> tuple[int, str]:
+    """The command's exit code and stderr, once every process holding its pipes is gone."""
+    import subprocess
+
     try:
-        proc.communicate(timeout=120)  # EOF only once every process holding the pipes is gone
+        _, err = proc.communicate(timeout=120)
     except subprocess.TimeoutExpired:
-        pytest.fail("the parts' processes outlived the killed command and hold its pipes open")
+        proc.kill()
+        pytest.fail("the parts' processes outlived the command and hold its pipes open")
+    return proc.returncode, err.decode()
+
+
+def test_parts_processes_end_when_the_command_is_killed(tmp_path):
+    """`interreal motions` SIGKILLed while its parts are measured: the parts' processes end too, so what reads the
+    command's output sees it end (they once held its stderr open for ever, and a test waiting on it hung)."""
+    proc = measuring(tmp_path)
+    proc.kill()
+    outputs(proc)
+
+
+def test_ctrl_c_while_parts_are_measured_is_one_line(tmp_path):
+    """Ctrl-C while the parts are measured at once: one line and 130, at once (the parts' processes are ended, not
+    waited for), no traceback from any of them."""
+    import signal
+
+    proc = measuring(tmp_path)
+    proc.send_signal(signal.SIGINT)
+    code, err = outputs(proc)
+    assert code == 130 and "Traceback" not in err and err.strip().splitlines()[-1].startswith("interreal motions: "), err
 
 
 def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -129,7 +130,10 @@ def worker_count(cfg: MotionConfig, parts: int) -> int:
 
 def follow_parent(parent: int) -> None:
     """A part's process ends soon after the command that started it is gone (killed, SIGKILL included): left
-    waiting, it would hold that command's terminal and pipes open for ever."""
+    waiting, it would hold that command's terminal and pipes open for ever. Ctrl-C is the command's to answer (one
+    line; it ends its parts' processes), not a traceback from each of them."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
     def watch() -> None:
         while os.getppid() == parent:
             time.sleep(0.5)
@@ -152,6 +156,7 @@ def measured_objects(ds, cfg: MotionConfig, states: np.ndarray, known: np.ndarra
         return
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=follow_parent,
                                initargs=(os.getpid(),))
+    done = False
     try:
         futures = [pool.submit(measure_object_at, ds.root, o, cfg, states[:, o], known[:, o], given[:, o], o)
                    for o in range(n)]
@@ -162,8 +167,12 @@ def measured_objects(ds, cfg: MotionConfig, states: np.ndarray, known: np.ndarra
                 raise StageError(f"the process measuring '{ds.object_names[o]}' died ({exc}): run `interreal motions "
                                  f"{ds.root} --workers 1` to measure the parts one after another and see why") from exc
             yield o, result
+        done = True
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+        if not done:  # Ctrl-C, an error: the parts still being measured are not waited for (killed: COLMAP's
+            for proc in list((getattr(pool, "_processes", None) or {}).values()):  # handler dumps a stack on SIGTERM)
+                proc.kill()
+        pool.shutdown(wait=done, cancel_futures=True)
 
 
 def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> dict[str, Any]:

@@ -13,7 +13,9 @@ import errno
 import importlib
 import io
 import os
+import signal
 import sys
+import threading
 from typing import Callable, Sequence
 
 from . import __version__
@@ -67,6 +69,7 @@ def _run_cli(prog: str, commands: dict[str, tuple[str, str]], epilog: str, argv:
     module.add_arguments(parser)
     args = parser.parse_args(argv[1:])
     main_fn: Callable[[argparse.Namespace], int] = module.main
+    restore = _sigterm_as_interrupt()
     try:
         code = int(main_fn(args) or 0)
         sys.stdout.flush()
@@ -81,6 +84,22 @@ def _run_cli(prog: str, commands: dict[str, tuple[str, str]], epilog: str, argv:
             raise
         print(f"{prog} {name}: error: {system_error_message(exc)}", file=sys.stderr)
         return 2
+    finally:
+        restore()
+
+
+def _sigterm_as_interrupt() -> Callable[[], None]:
+    """SIGTERM (`timeout`, `docker stop`, a scheduler) stops a command as Ctrl-C does: one line, 143, its report
+    "interrupted". Set once the command's modules are imported (pycolmap's glog sets its own, which dumps a stack).
+    Returns what puts the earlier handler back (nothing to do off the main thread: signals are the main thread's)."""
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+
+    def handler(signum, frame):  # noqa: ARG001 - the signal module's signature
+        raise Terminated("terminated (SIGTERM)")
+
+    before = signal.signal(signal.SIGTERM, handler)
+    return lambda: signal.signal(signal.SIGTERM, signal.SIG_DFL if before is None else before)
 
 
 # disk full and permission problems: the user's to fix, so one line, not a traceback

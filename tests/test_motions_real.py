@@ -388,15 +388,18 @@ def test_parts_processes_end_when_the_command_is_killed(tmp_path):
     outputs(proc)
 
 
-def test_ctrl_c_while_parts_are_measured_is_one_line(tmp_path):
-    """Ctrl-C while the parts are measured at once: one line and 130, at once (the parts' processes are ended, not
-    waited for), no traceback from any of them."""
+@pytest.mark.parametrize("sig, code", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_ctrl_c_or_sigterm_while_parts_are_measured_is_one_line(tmp_path, sig, code):
+    """Ctrl-C or SIGTERM (`timeout`, `docker stop`) while the parts are measured at once: one line and 130 / 143, at
+    once (the parts' processes are ended, not waited for), no traceback, no stack dump (COLMAP's SIGTERM handler
+    printed one) and no leaked semaphore (their progress bars' locks were) from the command or its parts."""
     import signal
 
     proc = measuring(tmp_path)
-    proc.send_signal(signal.SIGINT)
-    code, err = outputs(proc)
-    assert code == 130 and "Traceback" not in err and err.strip().splitlines()[-1].startswith("interreal motions: "), err
+    proc.send_signal(getattr(signal, sig))
+    got, err = outputs(proc)
+    assert got == code and "Traceback" not in err and "Aborted at" not in err and "leaked" not in err, err
+    assert err.strip().splitlines()[-1].startswith("interreal motions: "), err
 
 
 def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:

@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+from tqdm import tqdm
 
 from .. import provenance
 from ..conventions import ARTICULATION_FILE
@@ -131,8 +132,11 @@ def worker_count(cfg: MotionConfig, parts: int) -> int:
 def follow_parent(parent: int) -> None:
     """A part's process ends soon after the command that started it is gone (killed, SIGKILL included): left
     waiting, it would hold that command's terminal and pipes open for ever. Ctrl-C is the command's to answer (one
-    line; it ends its parts' processes), not a traceback from each of them."""
+    line; it ends its parts' processes), and so is SIGTERM (COLMAP's handler would dump each one's stack)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # its progress bar's lock a thread's, not a semaphore: killed, it would leave one the parent's tracker warns of
+    tqdm.set_lock(threading.RLock())
 
     def watch() -> None:
         while os.getppid() == parent:

@@ -4,6 +4,7 @@ orientation only (a wrong one is named), the part's masks less the transient lay
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -299,6 +300,19 @@ def test_parts_measured_at_once_report_what_one_after_another_does(tmp_path):
     assert _strip_times(ra["steps"]) == _strip_times(rb["steps"])
     assert [w["message"] for w in ra["warnings"]] == [w["message"] for w in rb["warnings"]]
     assert all(st["frames_shown"] == 12 and st["routes"] for st in rb["steps"].values())
+
+
+def test_parts_at_once_keep_to_the_cpus_a_batch_gives(monkeypatch):
+    """One process per part and core, no more than the CPU budget `interreal batch` gives a capture
+    (OMP_NUM_THREADS), and `--workers` as given."""
+    from interreal.motions import MotionConfig
+    from interreal.motions.stage import worker_count
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert worker_count(MotionConfig(), 3) == 1 and worker_count(MotionConfig(workers=3), 5) == 3
+    monkeypatch.setenv("OMP_NUM_THREADS", "64")
+    assert worker_count(MotionConfig(), 2) == min(2, len(os.sched_getaffinity(0)))
+    assert worker_count(MotionConfig(), 1) == 1 and worker_count(MotionConfig(workers=4), 2) == 2
 
 
 def die(*args, **kwargs):

@@ -124,9 +124,11 @@ def flagged_labels(root: str | Path) -> list[dict[str, Any]]:
 # The stage
 # ----------------------------------------------------------------------------------------------------------------
 def worker_count(cfg: MotionConfig, parts: int) -> int:
-    """How many parts are measured at once: `cfg.workers`, or one per CPU core this process may use."""
+    """How many parts are measured at once: `cfg.workers`, or one per CPU core this process may use (no more than
+    the CPU budget `interreal batch` gives each capture, OMP_NUM_THREADS, as COLMAP's threads keep to it)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, min(parts, cfg.workers or cores))
+    budget = colmap.threads(-1)
+    return max(1, min(parts, cfg.workers or (min(cores, budget) if budget > 0 else cores)))
 
 
 def follow_parent(parent: int) -> None:
@@ -286,6 +288,7 @@ def add_arguments(p) -> None:
     p.epilog = ("examples:\n  interreal motions out/ds\n  interreal motions out/ds --erode 4\n"
                 "  interreal motions out/ds --route edge      # a plain door filmed from close by, tried first\n"
                 "  interreal motions out/ds --route prism     # a plain drawer, tried first\n"
+                "  interreal motions out/ds --workers 1       # the parts one after another (each holds its masks)\n"
                 f"writes DS/{ARTICULATION_FILE} (read by `livescene train`) and DS/reports/motions.json")
 
 

@@ -117,7 +117,7 @@ def part_masks(ds, obj: int, out: Path, cfg: MotionConfig, keep: set[int] = froz
         name = Path(ds.frames[i].file_path).name
         atomic.write_image(out / f"{name}.png", shown[i])
         names.append(name)
-    return PartMasks(names, max(seen, len(names)))
+    return PartMasks(names, seen)  # every frame kept shows the part: seen >= len(names)
 
 
 def part_pairs(n: int, overlap: int, key_every: int) -> list[tuple[int, int]]:

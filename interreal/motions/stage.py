@@ -48,11 +48,9 @@ from ..options import add_flags, config_from, values_from_args
 from ..report import StageReport, finished_with, fingerprint, read_report, warning_lines
 from ..sfm import colmap
 from .fit import FLAG_TOL, LABELS_LINE, UNLABELLED_END, PartViews, fit_motion
-from .part import (ROUTES, MotionConfig, ObjectResult, PartMasks, measure_object, measure_object_at,
-                   measure_part, part_masks, part_pairs)
+from .part import ROUTES, MotionConfig, ObjectResult, measure_object, measure_object_at, measure_part
 
-__all__ = ["PartMasks", "PartViews", "fit_motion", "estimate_motions", "measure_part", "MotionConfig",
-           "part_masks", "part_pairs"]
+__all__ = ["PartViews", "fit_motion", "estimate_motions", "measure_part", "MotionConfig"]
 
 
 # ----------------------------------------------------------------------------------------------------------------

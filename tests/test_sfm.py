@@ -424,3 +424,41 @@ def test_pose_flags_come_from_the_config_fields():
     assert opts["verbose"] is True and opts["undistort"] is False
     with pytest.raises(SystemExit):
         p.parse_args(["--ba-loss", "l2"])
+
+
+def test_cropped_extraction_keeps_the_masked_features_in_frame_coordinates(tmp_path):
+    """A part's SIFT from its mask's box alone: the same features the whole frame's extraction keeps under the mask
+    (COLMAP drops the others after extracting), at the same frame pixels, in a database the matcher reads."""
+    import pycolmap
+
+    from interreal.sfm import colmap
+
+    rng = np.random.default_rng(3)
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (240, 320)).astype(np.uint8), (0, 0), 1.5)
+    images, masks = tmp_path / "images", tmp_path / "masks"
+    images.mkdir(), masks.mkdir()
+    names = ["a.png", "b.png"]
+    for k, name in enumerate(names):
+        shifted = np.roll(texture, 6 * k, axis=1)  # the second view: the scene 6 px to the right
+        cv2.imwrite(str(images / name), cv2.merge([shifted] * 3))
+        mask = np.zeros((240, 320), np.uint8)
+        mask[90:170, 120 + 6 * k:220 + 6 * k] = 255
+        cv2.imwrite(str(masks / f"{name}.png"), mask)
+    ex = colmap.Extraction("PINHOLE", 4096, 4000, camera_params="300,300,160,120", num_threads=1)
+    whole, cropped = tmp_path / "whole.db", tmp_path / "cropped.db"
+    colmap.extract_features(pycolmap, whole, images, [(-1, names)], ex, masks, chunk=None)
+    colmap.extract_cropped(pycolmap, cropped, images, names, ex, masks, first_octave=-1)
+    with pycolmap.Database.open(str(whole)) as a, pycolmap.Database.open(str(cropped)) as b:
+        assert b.num_cameras() == 1 and b.num_images() == 2
+        for name in names:
+            kw = a.read_keypoints(a.read_image_with_name(name).image_id)[:, :2]
+            kc = b.read_keypoints(b.read_image_with_name(name).image_id)[:, :2]
+            assert len(kc) > 50 and abs(len(kc) - len(kw)) < 0.1 * len(kw), (len(kc), len(kw))
+            x0 = 120 + 6 * names.index(name)
+            assert (kc[:, 0] >= x0).all() and (kc[:, 0] < x0 + 100).all() and (kc[:, 1] >= 90).all()
+            near = np.linalg.norm(kw[:, None] - kc[None], axis=2).min(1)
+            assert np.mean(near < 0.05) > 0.9, np.mean(near < 0.05)  # the same keypoints, not shifted by the crop
+    colmap.match_pairs(pycolmap, cropped, names, [(0, 1)], tmp_path / "pairs.txt", seed=0, num_threads=1, chunk=None)
+    with pycolmap.Database.open(str(cropped)) as b:
+        ids = [b.read_image_with_name(n).image_id for n in names]
+        assert b.read_two_view_geometry(*ids).inlier_matches.shape[0] > 50

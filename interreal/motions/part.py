@@ -140,7 +140,7 @@ def match_part(pc, ds, names: list[str], mask_dir: Path, work: Path, cfg: Motion
     params = ",".join(f"{v:.9g}" for v in (intr.fl_x, intr.fl_y, intr.cx, intr.cy, intr.k1, intr.k2, intr.p1, intr.p2))
     ex = colmap.Extraction("OPENCV", 4096, cfg.max_features, camera_params=params, num_threads=cfg.num_threads)
     # first octave -1: on small regions the upsampled octave finds several times the features
-    colmap.extract_features(pc, db, (ds.root / IMAGES_DIR).resolve(), [(-1, names)], ex, mask_dir, chunk=None)
+    colmap.extract_cropped(pc, db, (ds.root / IMAGES_DIR).resolve(), names, ex, mask_dir, first_octave=-1)
     colmap.match_pairs(pc, db, names, part_pairs(len(names), cfg.overlap, cfg.key_every), work / "pairs.txt",
                        cfg.seed, cfg.num_threads, chunk=None)
     return db

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+import cv2
 import numpy as np
 import pycolmap
 from tqdm import tqdm
@@ -132,8 +133,6 @@ def extract_cropped(pc, db: Path, image_dir: Path, names: list[str], ex: Extract
     COLMAP's layout) cropped, its features put back in the frame's coordinates and kept where the mask is set, as
     `extract_features` keeps them; one shared camera. A part a tenth of the frame costs a tenth of the time (at
     `first_octave` -1 the whole frame is upsampled twice over)."""
-    import cv2
-
     opt = pc.FeatureExtractionOptions(num_threads=threads(ex.num_threads), use_gpu=False,
                                       max_image_size=ex.max_image_size)
     opt.sift.max_num_features, opt.sift.first_octave = ex.max_features, first_octave

@@ -302,6 +302,77 @@ def test_parts_measured_at_once_report_what_one_after_another_does(tmp_path):
     assert all(st["frames_shown"] == 12 and st["routes"] for st in rb["steps"].values())
 
 
+def test_a_run_stopped_after_one_part_resumes_from_it(tmp_path, monkeypatch):
+    """Ctrl-C (or another part's failure) after a part was measured: the next run with the same inputs and
+    settings measures only the parts left, and reports what a run from scratch does; `--force`, other settings or
+    a damaged saved part measure again."""
+    import shutil
+
+    from conftest import make_tiny_dataset
+
+    from interreal.motions import estimate_motions
+    from interreal.motions import part as motions
+
+    fresh = make_tiny_dataset(tmp_path / "fresh", n_frames=12, size=(64, 48), n_objects=2)
+    ds = tmp_path / "ds"
+    shutil.copytree(fresh, ds)
+    opts = dict(min_pixels=10, min_registered=4, erode=0, attempts=1, workers=1)
+    calls: list[int] = []
+    real = motions.measure_part
+
+    def counted(*args, obj=None, stop_at=None, **kwargs):
+        calls.append(obj)
+        if obj == stop_at:
+            raise KeyboardInterrupt
+        return real(*args, obj=obj, **kwargs)
+
+    monkeypatch.setattr(motions, "measure_part", lambda *a, **k: counted(*a, stop_at=1, **k))
+    with pytest.raises(KeyboardInterrupt):
+        estimate_motions(ds, **opts)
+    assert calls == [0, 1] and (ds / "motions" / "object_0" / motions.RESULT_FILE).exists()
+    monkeypatch.setattr(motions, "measure_part", counted)
+    calls.clear()
+    resumed = estimate_motions(ds, **opts)
+    assert calls == [1]  # the door was not measured again
+    steps = json.loads((ds / "reports" / "motions.json").read_text())["steps"]
+    assert steps["object 0"].pop("reused") is True and "reused" not in steps["object 1"]
+    calls.clear()
+    scratch = estimate_motions(fresh, **opts)
+    assert calls == [0, 1] and _strip_times(resumed) == _strip_times(scratch)
+    assert _strip_times(steps) == _strip_times(json.loads((fresh / "reports" / "motions.json").read_text())["steps"])
+    (ds / "reports" / "motions.json").unlink()  # as if this run had been stopped too: the parts are saved
+    for again, changed in ((dict(opts, force=True), [0, 1]), (dict(opts, attempts=2), [0, 1])):
+        calls.clear()
+        estimate_motions(ds, **again)
+        assert calls == changed, again
+    (ds / "motions" / "object_1" / motions.RESULT_FILE).write_text("{not json")
+    (ds / "reports" / "motions.json").unlink()
+    calls.clear()
+    estimate_motions(ds, **dict(opts, attempts=2))
+    assert calls == [1]
+
+
+def test_parts_left_by_a_stopped_run_are_measured_at_once(tmp_path):
+    """Resumed with parts at once: the saved part is read back, the others measured in their processes, and the
+    report is the one a whole run gives."""
+    from conftest import make_tiny_dataset
+
+    from interreal.motions import estimate_motions
+    from interreal.motions.part import RESULT_FILE
+
+    ds = make_tiny_dataset(tmp_path / "ds", n_frames=12, size=(64, 48), n_objects=3)
+    opts = dict(min_pixels=10, min_registered=4, erode=0, attempts=1)
+    whole = estimate_motions(ds, workers=1, **opts)
+    before = json.loads((ds / "reports" / "motions.json").read_text())["steps"]
+    (ds / "reports" / "motions.json").unlink()
+    for o in (1, 2):
+        (ds / "motions" / f"object_{o}" / RESULT_FILE).unlink()
+    resumed = estimate_motions(ds, workers=2, **opts)
+    after = json.loads((ds / "reports" / "motions.json").read_text())["steps"]
+    assert after["object 0"].pop("reused") is True and not any("reused" in after[f"object {o}"] for o in (1, 2))
+    assert _strip_times(resumed) == _strip_times(whole) and _strip_times(after) == _strip_times(before)
+
+
 def test_parts_at_once_keep_to_the_cpus_a_batch_gives(monkeypatch):
     """One process per part and core, no more than the CPU budget `interreal batch` gives a capture
     (OMP_NUM_THREADS), and `--workers` as given."""

@@ -5,6 +5,7 @@ measurement, run in a worker process of its own when a scene has several parts (
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +18,7 @@ from tqdm import tqdm
 from .. import atomic
 from ..conventions import IMAGES_DIR, opengl_to_opencv
 from ..dataset import Articulation, load_dataset
+from ..errors import DatasetError
 from ..layout import KEYFRAMES_DIR, MOTIONS_DIR  # DS/motions/<object>/: the part reconstructions
 from ..options import option
 from ..report import read_report
@@ -34,6 +36,7 @@ ROUTES = ("sfm", "pnp", "silhouette", "edge", "prism")
 # the routes that read the part's masks against the known cameras: (progress label, measure)
 OUTLINE_ROUTES = {"edge": ("static edge", measure_edge), "prism": ("front pulled out", measure_prism)}
 PNP_LONG_SIDE = 800  # the PnP route reads the images at most this large
+RESULT_FILE = "measured.json"  # DS/motions/object_<k>/: the part's finished measurement (`save_result`)
 
 
 
@@ -358,13 +361,52 @@ class ObjectResult(NamedTuple):
     shown: int  # frames that show it
     motion: Articulation | None
     fig: dict[str, Any] | None  # `measure_part`'s figures; None when too few frames show it to try
+    reused: bool = False  # read back from an interrupted run with the same inputs and settings (`saved_result`)
+
+
+def part_dir(root: Path, o: int) -> Path:
+    """DS/motions/object_<o>/: object `o`'s masks, reconstructions, log and finished measurement."""
+    return Path(root) / MOTIONS_DIR / f"object_{o}"
+
+
+def save_result(part: Path, key: str, name: str, result: ObjectResult) -> None:
+    """The part's finished measurement beside its work (atomic), for a run the stage did not finish: a Ctrl-C
+    or a failure in another part costs only the parts not yet measured."""
+    motion = None if result.motion is None else result.motion.to_json()
+    atomic.write_json(part / RESULT_FILE, {"key": key, "object": name, "matched": result.matched,
+                                           "shown": result.shown, "motion": motion, "fig": result.fig})
+
+
+def saved_result(part: Path, key: str, name: str) -> ObjectResult | None:
+    """`save_result`'s measurement when it was made with the resume key `key` for this object, else None (an
+    unreadable file is measured again)."""
+    try:
+        saved = json.loads((part / RESULT_FILE).read_text())
+        if saved.get("key") != key or saved.get("object") != name:
+            return None
+        motion = None if saved["motion"] is None else Articulation.from_json(saved["motion"], str(part / RESULT_FILE))
+        return ObjectResult(int(saved["matched"]), int(saved["shown"]), motion, saved["fig"], reused=True)
+    except (OSError, ValueError, KeyError, TypeError, DatasetError):
+        return None
 
 
 def measure_object(ds, o: int, cfg: MotionConfig, states: np.ndarray, known: np.ndarray, labelled: np.ndarray,
-                   position: int = 0) -> ObjectResult:
+                   position: int = 0, key: str | None = None, reuse: bool = True) -> ObjectResult:
     """Object `o`'s masks and motion; states, known, labelled (N,) its column of the dataset's. Its progress bar
-    is on the terminal's row `position` (parts measured at once each keep a row of their own)."""
-    part = ds.root / MOTIONS_DIR / f"object_{o}"
+    is on the terminal's row `position` (parts measured at once each keep a row of their own). With the stage's
+    resume `key` the result is saved, and one saved under that key is returned unmeasured when `reuse`."""
+    part = part_dir(ds.root, o)
+    name = ds.object_names[o]
+    if key is not None and reuse and (saved := saved_result(part, key, name)) is not None:
+        return saved
+    result = _measure_object(ds, o, part, cfg, states, known, labelled, position)
+    if key is not None:
+        save_result(part, key, name, result)
+    return result
+
+
+def _measure_object(ds, o: int, part: Path, cfg: MotionConfig, states: np.ndarray, known: np.ndarray,
+                    labelled: np.ndarray, position: int) -> ObjectResult:
     names, shown = part_masks(ds, o, part / "masks", cfg, keep=set(np.flatnonzero(labelled).tolist()))
     if len(names) < cfg.min_registered:
         return ObjectResult(len(names), shown, None, None)
@@ -383,6 +425,8 @@ def measure_object(ds, o: int, cfg: MotionConfig, states: np.ndarray, known: np.
 
 
 def measure_object_at(ds_path: Path, o: int, cfg: MotionConfig, states: np.ndarray, known: np.ndarray,
-                      labelled: np.ndarray, position: int) -> ObjectResult:
-    """`measure_object` in a worker process: the dataset is read there."""
-    return measure_object(load_dataset(ds_path), o, cfg, states, known, labelled, position)
+                      labelled: np.ndarray, position: int, key: str | None = None, reuse: bool = True
+                      ) -> ObjectResult:
+    """`measure_object` in a worker process: the dataset is read there (and the result saved there, as soon as
+    the part is done, whichever part the stage is waiting for)."""
+    return measure_object(load_dataset(ds_path), o, cfg, states, known, labelled, position, key, reuse)

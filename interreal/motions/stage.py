@@ -48,7 +48,8 @@ from ..options import add_flags, config_from, values_from_args
 from ..report import StageReport, finished_with, fingerprint, read_report, warning_lines
 from ..sfm import colmap
 from .fit import FLAG_TOL, LABELS_LINE, UNLABELLED_END, PartViews, fit_motion
-from .part import ROUTES, MotionConfig, ObjectResult, measure_object, measure_object_at, measure_part
+from .part import (ROUTES, MotionConfig, ObjectResult, measure_object, measure_object_at, measure_part, part_dir,
+                   saved_result)
 
 __all__ = ["PartViews", "fit_motion", "estimate_motions", "measure_part", "MotionConfig"]
 
@@ -146,27 +147,35 @@ def follow_parent(parent: int) -> None:
     threading.Thread(target=watch, name="follow-parent", daemon=True).start()
 
 
-def measured_objects(ds, cfg: MotionConfig, states: np.ndarray, known: np.ndarray, given: np.ndarray
-                     ) -> Iterator[tuple[int, ObjectResult]]:
+def measured_objects(ds, cfg: MotionConfig, states: np.ndarray, known: np.ndarray, given: np.ndarray,
+                     key: str | None = None, reuse: bool = True) -> Iterator[tuple[int, ObjectResult]]:
     """(object, its measurement) in the objects' order. With several parts and cores each part is measured in a
     process of its own (spawned: no thread of COLMAP's or OpenCV's is forked mid-work): the routes are mostly
     single-threaded Python, so two doors take the time of the slower one. A part's answer does not depend on which
-    process measures it."""
+    process measures it. Each finished part is saved under the resume `key`, and a run the stage did not finish
+    (Ctrl-C, another part's failure) is resumed from the parts it saved when `reuse`."""
     n = ds.n_objects
-    workers = worker_count(cfg, n)
-    if workers == 1:
+    saved = {o: r for o in range(n) if key is not None and reuse
+             and (r := saved_result(part_dir(ds.root, o), key, ds.object_names[o])) is not None}
+    todo = [o for o in range(n) if o not in saved]
+    workers = worker_count(cfg, len(todo))
+    if workers <= 1:
         for o in range(n):
-            yield o, measure_object(ds, o, cfg, states[:, o], known[:, o], given[:, o])
+            yield o, saved.get(o) or measure_object(ds, o, cfg, states[:, o], known[:, o], given[:, o], key=key,
+                                                    reuse=False)
         return
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=follow_parent,
                                initargs=(os.getpid(),))
     done = False
     try:
-        futures = [pool.submit(measure_object_at, ds.root, o, cfg, states[:, o], known[:, o], given[:, o], o)
-                   for o in range(n)]
-        for o, future in enumerate(futures):
+        futures = {o: pool.submit(measure_object_at, ds.root, o, cfg, states[:, o], known[:, o], given[:, o],
+                                  position, key, False) for position, o in enumerate(todo)}
+        for o in range(n):
+            if o in saved:
+                yield o, saved[o]
+                continue
             try:
-                result = future.result()
+                result = futures[o].result()
             except BrokenProcessPool as exc:
                 raise StageError(f"the process measuring '{ds.object_names[o]}' died ({exc}): run `interreal motions "
                                  f"{ds.root} --workers 1` to measure the parts one after another and see why") from exc
@@ -214,10 +223,13 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
     motions: dict[str, Articulation] = {}
     parts: dict[str, dict[str, Any]] = {}
     with StageReport(ds_path, "motions", inputs=inputs, settings=asdict(cfg), resume_key=key) as rep:
-        for o, (matched, shown, motion, fig) in measured_objects(ds, cfg, states, known, given):
+        for o, (matched, shown, motion, fig, reused) in measured_objects(ds, cfg, states, known, given, key,
+                                                                         reuse=not force):
             name = ds.object_names[o]
             with rep.step(f"object {o}") as st:
                 st["frames_shown"], st["frames_matched"] = shown, matched
+                if reused:
+                    st["reused"] = True  # measured by an earlier run of these inputs and settings that did not finish
                 if fig is None:
                     rep.warn(f"'{name}' shows in only {matched} frames: no motion measured (the k-axis alone "
                              f"will move it)", cause="motion-unseen", object=name)
@@ -294,8 +306,12 @@ def main(args) -> int:
     fig = estimate_motions(args.dataset, force=args.force, **values_from_args(MotionConfig, args))
     for line in warning_lines(args.dataset, ["motions"]):
         print(line)
+    steps = (read_report(args.dataset, "motions") or {}).get("steps") or {}
+    resumed = sum(bool(st.get("reused")) for st in steps.values() if isinstance(st, dict))
     print(f"motions: {fig['measured']} of {fig['total']} objects measured"
-          + (" (reused: same inputs and settings)" if fig.get("reused") else "") + ": "
+          + (" (reused: same inputs and settings)" if fig.get("reused") else "")
+          + (f" ({resumed} part(s) read back from the run that was stopped)" if resumed and not fig.get("reused")
+             else "") + ": "
           + ", ".join(f"{n} ({k})" for n, k in fig["objects"].items()))
     for name, part in (fig.get("parts") or {}).items():
         print("  " + part_line(name, part))

@@ -57,6 +57,15 @@ def _run_cli(prog: str, commands: dict[str, tuple[str, str]], epilog: str, argv:
     if name not in commands:
         top.error(f"unknown command {name!r}; choose from {', '.join(commands)}")
     module_name, helptext = commands[name]
+    restore = _sigterm_as_interrupt()  # while the command's modules load (seconds) as while it runs
+    try:
+        return _run_command(prog, name, module_name, helptext, argv[1:], error_types)
+    finally:
+        restore()
+
+
+def _run_command(prog: str, name: str, module_name: str, helptext: str, argv: list[str],
+                 error_types: tuple[type[BaseException], ...]) -> int:
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
@@ -67,9 +76,9 @@ def _run_cli(prog: str, commands: dict[str, tuple[str, str]], epilog: str, argv:
     parser = argparse.ArgumentParser(prog=f"{prog} {name}", description=helptext,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     module.add_arguments(parser)
-    args = parser.parse_args(argv[1:])
+    args = parser.parse_args(argv)
     main_fn: Callable[[argparse.Namespace], int] = module.main
-    restore = _sigterm_as_interrupt()
+    _sigterm_as_interrupt()  # again: an import may have set its own (pycolmap's glog dumps a stack)
     try:
         code = int(main_fn(args) or 0)
         sys.stdout.flush()
@@ -84,14 +93,13 @@ def _run_cli(prog: str, commands: dict[str, tuple[str, str]], epilog: str, argv:
             raise
         print(f"{prog} {name}: error: {system_error_message(exc)}", file=sys.stderr)
         return 2
-    finally:
-        restore()
 
 
 def _sigterm_as_interrupt() -> Callable[[], None]:
     """SIGTERM (`timeout`, `docker stop`, a scheduler) stops a command as Ctrl-C does: one line, 143, its report
-    "interrupted". Set once the command's modules are imported (pycolmap's glog sets its own, which dumps a stack).
-    Returns what puts the earlier handler back (nothing to do off the main thread: signals are the main thread's)."""
+    "interrupted". Set before the command's modules are imported and again after (pycolmap's glog sets its own,
+    which dumps a stack). Returns what puts the earlier handler back (nothing to do off the main thread: signals
+    are the main thread's)."""
     if threading.current_thread() is not threading.main_thread():
         return lambda: None
 

@@ -673,3 +673,33 @@ def test_polygon_problems_say_which(tmp_path):
         atomic.write_json(kf / "00000.json", {"shapes": [{"label": "door", "shape_type": "polygon", "points": points}]})
         with pytest.raises(InputError, match=message):
             load_keyframes(kf, ["00000"], (16, 12), {0: "door"})
+
+
+SLOW_IMPORT = """
+import pathlib, time
+pathlib.Path({flag!r}).touch()
+time.sleep(60)
+"""
+
+
+def test_sigterm_while_a_command_loads_is_one_line(tmp_path):
+    """SIGTERM in the seconds a command's modules take to import (torch, pycolmap) stops it as it does mid-work:
+    one line and 143, not a silent death or a native handler's stack dump."""
+    import os
+    import signal
+
+    flag = tmp_path / "importing"
+    (tmp_path / "slow_command.py").write_text(SLOW_IMPORT.format(flag=str(flag)))
+    code = ("import sys; from interreal.runner import run_cli; "
+            "sys.exit(run_cli('interreal', {'slow': ('slow_command', 'loads for a minute')}, '', ['slow'], (ValueError,)))")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(Path(__file__).parent.parent)]))
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    for _ in range(600):
+        if flag.exists() or proc.poll() is not None:
+            break
+        time.sleep(0.1)
+    assert flag.exists(), proc.communicate(timeout=60)[1].decode()[-2000:]
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, (proc.returncode, err.decode())
+    assert err.decode().strip() == "interreal: terminated (SIGTERM)", err.decode()

@@ -199,6 +199,28 @@ def test_the_ends_come_from_the_geometry_when_labels_sit_at_one_end():
     assert max(abs(measured[f] - states[f]) for f in measured) < 0.05
 
 
+def test_a_part_measured_only_part_way_is_oriented_by_its_labels_order():
+    """The frames where the door stands open never registered (its front turned away): what was measured reaches
+    state 0.35, its labels 0 to 0.35, all under the 0.4 that says "labels that vary". Their order along the measured
+    motion orients it (was refused: "every label says 0.00"), and the labels' line puts its open end at 0.35, so the
+    hinge keeps its full range; labels of about one value in no order still do not orient a motion."""
+    states = np.concatenate([np.zeros(12), np.linspace(0, 0.35, 14), np.full(10, 0.35), np.linspace(0.35, 0, 8),
+                             np.zeros(10)])
+    pv = _capture(HINGE, states, 5, rot_deg=0.3, pos_noise=0.002)
+    labels, known = _labels(states, every=4, noise=0.02, seed=5)
+    assert np.ptp(labels[known]) < 0.4
+    fit, extra = fit_motion(pv, labels, known)
+    assert extra["accepted"], extra["reason"]
+    closed, opened = sorted(extra["end_states"])
+    assert "order" in extra["ends_from"] and closed == 0.0 and opened == pytest.approx(0.35, abs=0.05)
+    assert abs(np.degrees(fit.range - HINGE.range)) < 5
+    measured = dict(extra["frame_states"])
+    assert max(abs(measured[f] - states[f]) for f in measured) < 0.05
+    flat, known = _labels(np.zeros(len(states)), every=4, noise=0.05, seed=5)  # a user who called it closed
+    fit, extra = fit_motion(pv, np.abs(flat), known)
+    assert not extra["accepted"] and "not at one end nor in their order" in extra["reason"], extra["reason"]
+
+
 def test_states_follow_the_labels_direction_and_partial_ends():
     """Labels that say the part starts open fix the direction; a capture that only opens half way (labels 0..0.5)
     keeps its half range instead of being stretched to 1."""

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+from scipy.stats import kendalltau
 
 from ..dataset import Articulation
 
@@ -38,6 +39,7 @@ FLAG_TOL = 0.25  # a label further than this from the measured state is a likely
 LABEL_TOL = 0.15  # with trust_labels: the motion is refused when the labels' median disagreement exceeds this ...
 MAX_FLAGGED = 1 / 3  # ... or more than this share of the labels are flagged
 END_NEAR = 0.25  # labels of one value orient the motion only when all lie within this share of the span of one end
+ORDER_P = 0.01  # labels whose order along the measured motion is this unlikely by chance orient it by their trend
 UNLABELLED_END = "no label near it"  # how `end_state` says an end's state is the geometry's alone ...
 LABELS_LINE = "the labels' line"  # ... or the labels' guess, where no route measured the part further
 JUMP = FLAG_TOL  # a frame whose state leaves its neighbours' median by more than this is misregistered ...
@@ -377,14 +379,26 @@ def orientation(x: np.ndarray, y: np.ndarray) -> tuple[int, str]:
     if np.ptp(y) >= 2 * SNAP:
         slope, _ = robust_line(x, y)
         return (1 if slope > 0 else -1 if slope < 0 else 0), "the labels' trend"
+    if order := _order(x, y):
+        return order, "the labels' order along it"
     v, where = float(np.median(y)), float(np.median(x))
+    said = f"every label says {v:.2f}" if np.ptp(y) < 0.005 else f"the labels say {y.min():.2f} to {y.max():.2f}"
     if not (x.max() <= END_NEAR or x.min() >= 1 - END_NEAR):
-        return 0, (f"every label says {v:.2f}, but the measurement puts those frames at positions {x.min():.2f} "
-                   f"to {x.max():.2f} of its motion, not at one end: label both ends, or the measurement is wrong")
+        return 0, (f"{said}, but the measurement puts those frames at positions {x.min():.2f} to {x.max():.2f} of "
+                   f"its motion, not at one end nor in their order: label both ends, or the measurement is wrong")
     if SNAP < v < 1 - SNAP:  # part-way at one end: the other end could be closed or open
-        return 0, (f"every label says {v:.2f}, part-way, at one end of the measured motion: label a frame at the "
-                   f"other end")
-    return (1 if (where > 0.5) == (v > 0.5) else -1), f"every label says {v:.2f} near one end"
+        return 0, f"{said}, part-way, at one end of the measured motion: label a frame at the other end"
+    return (1 if (where > 0.5) == (v > 0.5) else -1), f"{said} near one end"
+
+
+def _order(x: np.ndarray, y: np.ndarray) -> int:
+    """+1 / -1: labels that change little but rise / fall along the measured motion beyond chance (Kendall's tau,
+    one-sided, under `ORDER_P`), else 0. A video whose part was measured only part way open (its open frames never
+    registered) is oriented by its labels' order, not refused as if they all said one value."""
+    if len(x) < 3 or np.ptp(y) == 0 or np.ptp(x) == 0:
+        return 0
+    tau, p = kendalltau(x, y)
+    return int(np.sign(tau)) if np.isfinite(p) and p / 2 < ORDER_P else 0
 
 
 def end_state(x: np.ndarray, y: np.ndarray, end: float, state: float) -> tuple[float, str]:

@@ -28,4 +28,4 @@ LOCK_FILE = ".edit.lock"  # held while a label tool edits the dataset
 CACHE_DIR = "cache"  # what a stage keeps to make its next run faster, never read as a result
 MASKS_CACHE_DIR = f"{CACHE_DIR}/masks"  # the masks stage's stretches of frames (`interreal.masks.reuse`)
 TRANSIENTS_CACHE_FILE = f"{CACHE_DIR}/transients_auto.npz"  # `--transients auto`'s layer (`transients.auto`)
-MOTIONS_DIR = "motions"  # <object>/: the motion stage's part reconstructions (database, masks, model)
+MOTIONS_DIR = "motions"  # object_<k>/: the motion stage's part work (database, masks, model, measured.json)

@@ -382,7 +382,7 @@ def orientation(x: np.ndarray, y: np.ndarray) -> tuple[int, str]:
     if order := _order(x, y):
         return order, "the labels' order along it"
     v, where = float(np.median(y)), float(np.median(x))
-    said = f"every label says {v:.2f}" if np.ptp(y) < 0.005 else f"the labels say {y.min():.2f} to {y.max():.2f}"
+    said = f"every label says {v:.2f}" if np.ptp(y) == 0 else f"the labels say {y.min():.2f} to {y.max():.2f}"
     if not (x.max() <= END_NEAR or x.min() >= 1 - END_NEAR):
         return 0, (f"{said}, but the measurement puts those frames at positions {x.min():.2f} to {x.max():.2f} of "
                    f"its motion, not at one end nor in their order: label both ends, or the measurement is wrong")

@@ -391,22 +391,19 @@ def saved_result(part: Path, key: str, name: str) -> ObjectResult | None:
 
 
 def measure_object(ds, o: int, cfg: MotionConfig, states: np.ndarray, known: np.ndarray, labelled: np.ndarray,
-                   position: int = 0, key: str | None = None, reuse: bool = True) -> ObjectResult:
+                   position: int = 0, key: str | None = None) -> ObjectResult:
     """Object `o`'s masks and motion; states, known, labelled (N,) its column of the dataset's. Its progress bar
     is on the terminal's row `position` (parts measured at once each keep a row of their own). With the stage's
-    resume `key` the result is saved, and one saved under that key is returned unmeasured when `reuse`."""
+    resume `key` the result is saved (`save_result`) as soon as the part is done."""
     part = part_dir(ds.root, o)
-    name = ds.object_names[o]
-    if key is not None and reuse and (saved := saved_result(part, key, name)) is not None:
-        return saved
-    result = _measure_object(ds, o, part, cfg, states, known, labelled, position)
+    result = _measured(ds, o, part, cfg, states, known, labelled, position)
     if key is not None:
-        save_result(part, key, name, result)
+        save_result(part, key, ds.object_names[o], result)
     return result
 
 
-def _measure_object(ds, o: int, part: Path, cfg: MotionConfig, states: np.ndarray, known: np.ndarray,
-                    labelled: np.ndarray, position: int) -> ObjectResult:
+def _measured(ds, o: int, part: Path, cfg: MotionConfig, states: np.ndarray, known: np.ndarray,
+              labelled: np.ndarray, position: int) -> ObjectResult:
     names, shown = part_masks(ds, o, part / "masks", cfg, keep=set(np.flatnonzero(labelled).tolist()))
     if len(names) < cfg.min_registered:
         return ObjectResult(len(names), shown, None, None)
@@ -425,8 +422,7 @@ def _measure_object(ds, o: int, part: Path, cfg: MotionConfig, states: np.ndarra
 
 
 def measure_object_at(ds_path: Path, o: int, cfg: MotionConfig, states: np.ndarray, known: np.ndarray,
-                      labelled: np.ndarray, position: int, key: str | None = None, reuse: bool = True
-                      ) -> ObjectResult:
-    """`measure_object` in a worker process: the dataset is read there (and the result saved there, as soon as
-    the part is done, whichever part the stage is waiting for)."""
-    return measure_object(load_dataset(ds_path), o, cfg, states, known, labelled, position, key, reuse)
+                      labelled: np.ndarray, position: int, key: str | None = None) -> ObjectResult:
+    """`measure_object` in a worker process: the dataset is read there (and the result saved there, whichever
+    part the stage is waiting for)."""
+    return measure_object(load_dataset(ds_path), o, cfg, states, known, labelled, position, key)

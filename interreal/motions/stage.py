@@ -161,15 +161,14 @@ def measured_objects(ds, cfg: MotionConfig, states: np.ndarray, known: np.ndarra
     workers = worker_count(cfg, len(todo))
     if workers <= 1:
         for o in range(n):
-            yield o, saved.get(o) or measure_object(ds, o, cfg, states[:, o], known[:, o], given[:, o], key=key,
-                                                    reuse=False)
+            yield o, saved.get(o) or measure_object(ds, o, cfg, states[:, o], known[:, o], given[:, o], key=key)
         return
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=follow_parent,
                                initargs=(os.getpid(),))
     done = False
     try:
         futures = {o: pool.submit(measure_object_at, ds.root, o, cfg, states[:, o], known[:, o], given[:, o],
-                                  position, key, False) for position, o in enumerate(todo)}
+                                  position, key) for position, o in enumerate(todo)}
         for o in range(n):
             if o in saved:
                 yield o, saved[o]

@@ -122,6 +122,8 @@ def test_measure_part_tries_another_mapper_seed_when_the_first_model_is_bent(mon
     monkeypatch.setattr(motions, "map_part", lambda pc, ds, db, out, cfg, seed: seeds.append(seed) or seed)
     monkeypatch.setattr(motions, "part_views", lambda rec, ds: bent if rec == 0 else good)
     monkeypatch.setattr(motions, "measure_part_pnp", lambda *a, **k: (None, {}))  # the other route finds nothing
+    monkeypatch.setattr(motions, "known_camera_motion",  # its tracks locate nothing: the poses are its own
+                        lambda *a, **k: (None, {"registered": 0, "at_known_state": 0, "known_located": 0}))
     motion, fig = motions.measure_part(None, None, [], tmp_path, states, known, motions.MotionConfig(attempts=3))
     assert seeds == [0, 1] and fig["attempt"] == 1 and fig["attempts"] == 2 and fig["accepted"]
     assert motion.kind == "slide" and fig["state_rmse_from_pose"] < 0.03

@@ -3,6 +3,7 @@
 One module per route, one for the decision they share, and the stage that runs them:
 - `stage`: the command (`estimate_motions`): every part measured (several at once, a process each), the report;
 - `part`: one part: its masks, its own SfM (the first route), the routes in turn (`measure_part`);
+- `known`: a refused own reconstruction's tracks posed by the known cameras, moved only as a hinge or slide can;
 - `pnp`: the part triangulated where it rests with the known cameras, then located in every frame by PnP;
 - `silhouette`: a part too plain for both: its flat front from its masks, the motion whose silhouettes fit them;
 - `edge`: a plain door or lid cut by the image border, hinged on the one edge of its outline that stays put;

@@ -91,14 +91,24 @@ def locate(f: Features, pts: np.ndarray, desc: np.ndarray, k: np.ndarray, dist: 
     m = match(f.desc, desc)
     if len(m) < MIN_INLIERS:
         return None
-    obj, img = pts[m[:, 1]].astype(np.float64), f.pts[m[:, 0]].astype(np.float64)
+    hit = solve_pnp(pts[m[:, 1]], f.pts[m[:, 0]], k, dist)
+    return None if hit is None else (hit[0], len(hit[1]))
+
+
+def solve_pnp(obj: np.ndarray, img: np.ndarray, k: np.ndarray, dist: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray] | None:
+    """(P 3x4, inlier indices) of the camera seeing points obj (N, 3) at pixels img (N, 2): SQPnP in RANSAC (a
+    planar part's mirrored pose is not taken), refined on the inliers; None under MIN_INLIERS."""
+    obj, img = np.asarray(obj, np.float64), np.asarray(img, np.float64)
+    if len(obj) < MIN_INLIERS:
+        return None
     ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, k, dist, iterationsCount=300, reprojectionError=PNP_PX,
                                              confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
     if not ok or inl is None or len(inl) < MIN_INLIERS:
         return None
     idx = inl.ravel()
     rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], k, dist, rvec, tvec)
-    return np.concatenate([cv2.Rodrigues(rvec)[0], tvec.reshape(3, 1)], 1), len(idx)
+    return np.concatenate([cv2.Rodrigues(rvec)[0], tvec.reshape(3, 1)], 1), idx
 
 
 def _grow(order: list[int], located: dict[int, tuple[np.ndarray, int]], feats: dict[int, Features],
@@ -179,12 +189,20 @@ def pnp_views(grays: dict[int, np.ndarray], masks: dict[int, np.ndarray], c2w: d
     fig.update(located=len(frames), median_inliers=int(np.median([located[i][1] for i in frames])) if frames else 0)
     if len(frames) < 3:
         return None, fig
+    return views_of_poses({i: located[i][0] for i in frames}, c2w, point), fig
+
+
+def views_of_poses(poses: dict[int, np.ndarray], c2w: dict[int, np.ndarray], point: np.ndarray) -> PartViews:
+    """`PartViews` (scale 1) from each frame's camera relative to the part at its reference state (3x4, x = K (R X
+    + t), X in the world as the part rests) and the frame's known camera (c2w 4x4, OpenCV axes); `point`: the
+    part's middle at rest, whose path is followed."""
+    frames = sorted(poses)
     cam = np.stack([c2w[i][:3, :3] for i in frames])
-    pose = np.stack([located[i][0] for i in frames])  # (F, 3, 4) camera from the reference's world points
+    pose = np.stack([poses[i] for i in frames])  # (F, 3, 4)
     rot = cam @ pose[:, :, :3]
     u = np.einsum("fij,fj->fi", cam, pose[:, :, :3] @ point + pose[:, :, 3])
     centre = np.stack([c2w[i][:3, 3] for i in frames])
-    return PartViews(np.asarray(frames), rot, u, centre, cam), fig
+    return PartViews(np.asarray(frames), rot, u, centre, cam)
 
 
 def reference_frames(positions: list[int], states: np.ndarray, known: np.ndarray, labelled: np.ndarray,

@@ -278,14 +278,17 @@ def part_summary(motion: Articulation, fig: dict[str, Any], shown: int) -> dict[
     states = [m for _, m in fig.get("frame_states", [])]
     size = round(float(np.degrees(motion.range)), 1) if motion.kind == "hinge" else round(float(motion.range), 4)
     return {"kind": motion.kind, "range": size, "unit": "deg" if motion.kind == "hinge" else "world units",
-            "route": fig.get("route"), "measured_frames": len(states), "shown_frames": shown,
+            "route": fig.get("route"), "poses": fig.get("poses_from"), "measured_frames": len(states),
+            "shown_frames": shown,
             "states": [round(min(states), 2), round(max(states), 2)] if states else None,
             "flagged_labels": len(fig.get("flagged_labels", [])), "ends_from": fig.get("ends_from", "")}
 
 
 def part_line(name: str, p: dict[str, Any]) -> str:
-    """One line per used motion, e.g. 'door': hinge of 53.6 deg by sfm, 64 of 64 frames, states -0.01 to 1.02."""
-    return (f"'{name}': {p['kind']} of {p['range']:g} {p['unit']} by {p['route']}, {p['measured_frames']} of "
+    """One line per used motion, e.g. 'door': hinge of 53.6 deg by sfm posed by the known cameras, 64 of 64 frames,
+    states -0.01 to 1.02."""
+    how = p["route"] + (" posed by the known cameras" if p.get("poses") == "known cameras" else "")
+    return (f"'{name}': {p['kind']} of {p['range']:g} {p['unit']} by {how}, {p['measured_frames']} of "
             f"{p['shown_frames']} frames" + (f", states {p['states'][0]:g} to {p['states'][1]:g}" if p["states"] else "")
             + (f"; {p['flagged_labels']} label(s) flagged" if p["flagged_labels"] else ""))
 

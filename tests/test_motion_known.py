@@ -152,3 +152,15 @@ def test_a_stretch_the_labels_wrongly_say_the_part_rests_over_is_found_by_the_ge
     motion, fig = known_camera_motion(rec, ds, filled[:, 0], known[:, 0], given)
     assert not fig["accepted"] and "moved where the labels say it rests" in fig["reason"], fig["reason"]
     assert fig["known_reference"][0] == 16
+
+
+def test_a_resting_stretch_whose_states_were_not_measured_is_named_as_such(monkeypatch):
+    """A stretch with under two of its frames measured (its frames left out as jumps) cannot show that the part
+    rested there: the motion is refused, and the reason says those frames were not measured."""
+    from interreal.motions import known as known_mod
+
+    rec, ds = _tracked_part(SLIDE, seed=5, points=60)
+    states, known, given = _labels()
+    monkeypatch.setattr(known_mod, "from_reference", lambda sc, ref, *a: (SLIDE, {"rest_spread": None}))
+    motion, fig = known_camera_motion(rec, ds, states, known, given)
+    assert not fig["accepted"] and "not measured" in fig["reason"] and "inf" not in fig["reason"], fig["reason"]

@@ -341,8 +341,9 @@ def known_camera_motion(rec, ds, states: np.ndarray, known: np.ndarray, labelled
         if motion is None:
             best = best if best[0] is not None or not fig else (None, fig)
             continue
-        spread = fig["rest_spread"] if fig["rest_spread"] is not None else np.inf  # under two of them measured
-        spreads.append(f"{spread:.2f} over frames {ref[0]}-{ref[-1]}")
+        spread = fig["rest_spread"] if fig["rest_spread"] is not None else np.inf
+        spreads.append(f"{spread:.2f} over frames {ref[0]}-{ref[-1]}" if np.isfinite(spread)
+                       else f"frames {ref[0]}-{ref[-1]} not measured")
         if spread <= REST_SPREAD:
             return motion, fig
         if best[0] is None or spread < least:

@@ -38,6 +38,9 @@ from .pnp import MAX_REPROJ_PX, MIN_INLIERS, MIN_RAY_DEG, PNP_PX, reference_fram
 MIN_POINTS = 20      # a resting stretch that triangulates fewer of the tracks is not tried
 MAX_REFERENCES = 3   # resting stretches tried, the labels' likeliest first
 REST_SPREAD = 0.05   # measured states spreading more than this over the resting stretch: it did not rest there
+PER_FRAME = 40       # points adjusted with the motion: each frame's this many most-seen (bounds the adjustment)
+MAX_STEPS = 100      # ... and at most this many steps (one started from a stretch the part moved over wanders)
+UNSETTLED = f"the motion and points adjusted together did not settle in {MAX_STEPS} steps"
 ROBUST_PX = 2.0      # scale of the robust loss of the constrained poses (px)
 MIN_FRAMES = 3       # fewer frames located: nothing to fit
 
@@ -163,11 +166,11 @@ def jacobian_sparsity(which: list[np.ndarray], point_columns: int) -> coo_matrix
 
 def adjust(kind: str, axis: np.ndarray, point: np.ndarray, starts: list[float], located: dict[int, Located],
            pts: dict[int, np.ndarray], c2w: dict[int, np.ndarray], k: np.ndarray, dist: np.ndarray,
-           move_points: bool = False) -> dict[int, np.ndarray]:
+           move_points: bool = False) -> dict[int, np.ndarray] | None:
     """Every located frame's camera relative to the resting part (3x4), the part moved only as `kind` can: the
     axis (its direction and, for a hinge, where it passes), each frame's angle or distance (from `starts`, in frame
     order) and, with `move_points`, the part's points that two or more frames see, adjusted together to every
-    frame's pixels with the cameras held (there is no gauge to fix). An axis fitted to free poses and then held
+    frame's pixels with the cameras held (there is no gauge to fix); None when it does not settle in MAX_STEPS. An axis fitted to free poses and then held
     leaves each frame's angle to make up for its error, and points triangulated where the part rests carry that
     stretch's narrow baseline: the simulated fridge door read 88 deg for its 100 with both held, 97 with the points
     held, 99.9 with neither."""
@@ -176,7 +179,11 @@ def adjust(kind: str, axis: np.ndarray, point: np.ndarray, starts: list[float], 
     for i in frames:
         for q in located[i][1].tolist():
             counts[q] = counts.get(q, 0) + 1
-    col = {q: n for n, q in enumerate(sorted(q for q, n in counts.items() if n >= 2 or not move_points))}
+    keep = {q for q, n in counts.items() if n >= 2 or not move_points}
+    if move_points:  # each frame's most-seen points: the few parameters of the motion need hundreds, not thousands
+        keep = {q for i in frames for q in sorted((q for q in located[i][1].tolist() if q in keep),
+                                                  key=lambda q: (-counts[q], q))[:PER_FRAME]}
+    col = {q: n for n, q in enumerate(sorted(keep))}
     points = np.array([pts[q] for q in col]).reshape(-1, 3)
     seen = [np.array([j for j, q in enumerate(located[i][1].tolist()) if q in col], int) for i in frames]
     which = [np.array([col[q] for q in located[i][1][j].tolist()], int) for i, j in zip(frames, seen)]
@@ -203,7 +210,11 @@ def adjust(kind: str, axis: np.ndarray, point: np.ndarray, starts: list[float], 
 
     sparsity = jacobian_sparsity(which, 3 * len(col) if move_points else 0)
     x0 = np.concatenate([np.zeros(4), starts] + ([points.ravel()] if move_points else []))
-    x = least_squares(residual, x0, loss="soft_l1", f_scale=ROBUST_PX, jac_sparsity=sparsity, x_scale="jac").x
+    fit = least_squares(residual, x0, loss="soft_l1", f_scale=ROBUST_PX, jac_sparsity=sparsity, x_scale="jac",
+                        max_nfev=MAX_STEPS)
+    if not fit.success:  # it did not settle: no measurement (one that wandered read the laptop's lid as 779 deg)
+        return None
+    x = fit.x
     if move_points:
         pts.update({q: v for q, v in zip(col, x[4 + f:].reshape(-1, 3))})
     rots, shifts = motions(x)
@@ -231,7 +242,7 @@ def grow(obs: dict[int, Track], poses: dict[int, np.ndarray], k: np.ndarray, dis
 
 
 def first_poses(fit: Fit, located: dict[int, Located], pts: dict[int, np.ndarray], c2w: dict[int, np.ndarray],
-                mid: np.ndarray, k: np.ndarray, dist: np.ndarray) -> dict[int, np.ndarray]:
+                mid: np.ndarray, k: np.ndarray, dist: np.ndarray) -> dict[int, np.ndarray] | None:
     """Every located frame's camera relative to the resting part, moved only as `fit`'s kind can, the points held:
     a hinge's angles from `best_angle` adjusted with its axis, a slide's frames each translated."""
     if fit.kind == "slide":
@@ -254,7 +265,7 @@ def hinge_starts(fit: Fit, located: dict[int, Located], pts: dict[int, np.ndarra
 
 def adjusted_poses(kind: str, poses: dict[int, np.ndarray], located: dict[int, Located], pts: dict[int, np.ndarray],
                    c2w: dict[int, np.ndarray], mid: np.ndarray, k: np.ndarray, dist: np.ndarray
-                   ) -> dict[int, np.ndarray]:
+                   ) -> dict[int, np.ndarray] | None:
     """The poses, the motion and the points adjusted together (`adjust`), started from `poses`' own fit."""
     views = views_of_poses(poses, c2w, mid)
     fit = fit_hinge(views) if kind == "hinge" else fit_slide(views)
@@ -307,12 +318,16 @@ def from_reference(sc: Scene, ref: list[int], states: np.ndarray, known: np.ndar
     free = views_of_poses({i: v[0] for i, v in located.items()}, sc.c2w, mid)
     chosen, _ = choose(fit_hinge(free), fit_slide(free), free)
     poses = first_poses(chosen, located, pts, sc.c2w, mid, sc.k, sc.dist)
+    if poses is None:
+        return None, dict(fig, known_reason=UNSETTLED)
     pts, poses = grow(sc.obs, poses, sc.k, sc.dist)
     located = relocate(sc.obs, pts, poses, sc.k, sc.dist)
     fig.update(known_points_all=len(pts), known_located_all=len(located), registered=len(located))
     if len(located) < MIN_FRAMES:
         return None, fig
     poses = adjusted_poses(chosen.kind, poses, located, pts, sc.c2w, mid, sc.k, sc.dist)
+    if poses is None:
+        return None, dict(fig, known_reason=UNSETTLED)
     # the cameras held, a turn the labels say did not happen is the part's (`rest_spread` judges it), never the
     # camera's read as the part's: no `fit.turns_with_camera` check
     views = replace(views_of_poses(poses, sc.c2w, mid), cam_rot=None)

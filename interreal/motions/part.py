@@ -339,7 +339,8 @@ def posed_fit(rec, ds, pv: PartViews, states: np.ndarray, known: np.ndarray, lab
               and fig["at_known_state"] >= cfg.min_known)
     if enough and fig["accepted"]:
         return motion, fig
-    why = (f"located {fig.get('known_located', 0)} frames" if not enough else f"refused: {fig['reason']}")
+    why = (fig.get("known_reason") or f"located {fig.get('known_located', 0)} frames" if not enough
+           else f"refused: {fig['reason']}")
     return own[0], dict(own[1], poses_from="its own reconstruction", known_cameras=why)
 
 

@@ -102,13 +102,25 @@ def locate_all(obs: dict[int, Track], pts: dict[int, np.ndarray], k: np.ndarray,
                ) -> dict[int, Located]:
     """Every frame that PnP locates against the resting part's points: its camera and the inliers."""
     out = {}
-    for i, (ids, xy) in obs.items():
-        keep = [j for j, pid in enumerate(ids.tolist()) if pid in pts]
-        obj = np.array([pts[int(ids[j])] for j in keep]).reshape(-1, 3)
-        hit = solve_pnp(obj, xy[keep], k, dist)
+    for i, track in obs.items():
+        ids, obj, xy = sighted(track, pts)
+        hit = solve_pnp(obj, xy, k, dist)
         if hit is not None:
-            out[i] = (hit[0], ids[keep][hit[1]], xy[keep][hit[1]])
+            out[i] = (hit[0], ids[hit[1]], xy[hit[1]])
     return out
+
+
+def sighted(track: Track, pts: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ids (M,), points (M, 3), pixels (M, 2)) of the frame's sightings of the points `pts` has."""
+    ids, xy = track
+    keep = np.array([pid in pts for pid in ids.tolist()], bool).reshape(-1)
+    return ids[keep], np.array([pts[int(q)] for q in ids[keep]]).reshape(-1, 3), xy[keep]
+
+
+def camera(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rvec, tvec) of the known camera c2w (4x4, OpenCV axes), as `cv2.projectPoints` takes them."""
+    w2c = np.linalg.inv(c2w)
+    return cv2.Rodrigues(w2c[:3, :3])[0], w2c[:3, 3]
 
 
 def motion_in_world(pose: np.ndarray, c2w: np.ndarray) -> np.ndarray:
@@ -122,8 +134,7 @@ def slide_pose(where: Located, pts: dict[int, np.ndarray], c2w: np.ndarray, mid:
     stray a little off its line, never turn); started where its free pose puts the part's middle `mid`."""
     pose, ids, img = where
     obj = np.array([pts[int(p)] for p in ids])
-    w2c = np.linalg.inv(c2w)
-    rvec, tvec = cv2.Rodrigues(w2c[:3, :3])[0], w2c[:3, 3]
+    rvec, tvec = camera(c2w)
     free = motion_in_world(pose, c2w)
 
     def residual(x: np.ndarray) -> np.ndarray:
@@ -132,7 +143,7 @@ def slide_pose(where: Located, pts: dict[int, np.ndarray], c2w: np.ndarray, mid:
     x = least_squares(residual, free[:3, :3] @ mid + free[:3, 3] - mid, loss="soft_l1", f_scale=ROBUST_PX).x
     moved = np.eye(4)
     moved[:3, 3] = x
-    return (w2c @ moved)[:3]
+    return (np.linalg.inv(c2w) @ moved)[:3]
 
 
 def best_angle(axis: np.ndarray, point: np.ndarray, obj: np.ndarray, img: np.ndarray,
@@ -170,10 +181,10 @@ def adjust(kind: str, axis: np.ndarray, point: np.ndarray, starts: list[float], 
     """Every located frame's camera relative to the resting part (3x4), the part moved only as `kind` can: the
     axis (its direction and, for a hinge, where it passes), each frame's angle or distance (from `starts`, in frame
     order) and, with `move_points`, the part's points that two or more frames see, adjusted together to every
-    frame's pixels with the cameras held (there is no gauge to fix); None when it does not settle in MAX_STEPS. An axis fitted to free poses and then held
-    leaves each frame's angle to make up for its error, and points triangulated where the part rests carry that
-    stretch's narrow baseline: the simulated fridge door read 88 deg for its 100 with both held, 97 with the points
-    held, 99.9 with neither."""
+    frame's pixels with the cameras held (there is no gauge to fix); None when it does not settle in MAX_STEPS.
+    An axis fitted to free poses and then held leaves each frame's angle to make up for its error, and points
+    triangulated where the part rests carry that stretch's narrow baseline: the simulated fridge door read 88 deg
+    for its 100 with both held, 97 with the points held, 99.9 with neither."""
     frames = sorted(located)
     counts: dict[int, int] = {}
     for i in frames:
@@ -189,8 +200,7 @@ def adjust(kind: str, axis: np.ndarray, point: np.ndarray, starts: list[float], 
     which = [np.array([col[q] for q in located[i][1][j].tolist()], int) for i, j in zip(frames, seen)]
     pix = [located[i][2][j] for i, j in zip(frames, seen)]
     b, f = basis(axis), len(frames)
-    cams = [np.linalg.inv(c2w[i]) for i in frames]
-    rt = [(cv2.Rodrigues(w[:3, :3])[0], w[:3, 3]) for w in cams]
+    rt = [camera(c2w[i]) for i in frames]
 
     def motions(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(F, 3, 3) rotations and (F, 3) translations of the part from rest."""
@@ -205,8 +215,9 @@ def adjust(kind: str, axis: np.ndarray, point: np.ndarray, starts: list[float], 
     def residual(x: np.ndarray) -> np.ndarray:
         rots, shifts = motions(x)
         at = x[4 + f:].reshape(-1, 3) if move_points else points
-        return np.concatenate([(cv2.projectPoints(at[w] @ r.T + t, c[0], c[1], k, dist)[0].reshape(-1, 2) - px).ravel()
-                               for w, px, r, t, c in zip(which, pix, rots, shifts, rt)])
+        seen = (cv2.projectPoints(at[w] @ r.T + t, *c, k, dist)[0].reshape(-1, 2) - px
+                for w, px, r, t, c in zip(which, pix, rots, shifts, rt))
+        return np.concatenate([v.ravel() for v in seen])
 
     sparsity = jacobian_sparsity(which, 3 * len(col) if move_points else 0)
     x0 = np.concatenate([np.zeros(4), starts] + ([points.ravel()] if move_points else []))
@@ -219,10 +230,10 @@ def adjust(kind: str, axis: np.ndarray, point: np.ndarray, starts: list[float], 
         pts.update({q: v for q, v in zip(col, x[4 + f:].reshape(-1, 3))})
     rots, shifts = motions(x)
     out = {}
-    for w2c, r, t, i in zip(cams, rots, shifts, frames):
+    for r, t, i in zip(rots, shifts, frames):
         moved = np.eye(4)
         moved[:3, :3], moved[:3, 3] = r, t
-        out[i] = (w2c @ moved)[:3]
+        out[i] = (np.linalg.inv(c2w[i]) @ moved)[:3]
     return out
 
 
@@ -254,13 +265,8 @@ def first_poses(fit: Fit, located: dict[int, Located], pts: dict[int, np.ndarray
 def hinge_starts(fit: Fit, located: dict[int, Located], pts: dict[int, np.ndarray], c2w: dict[int, np.ndarray],
                  k: np.ndarray, dist: np.ndarray) -> list[float]:
     """Each located frame's `best_angle` about `fit`'s axis, in frame order."""
-    starts = []
-    for i in sorted(located):
-        w2c = np.linalg.inv(c2w[i])
-        cam = (cv2.Rodrigues(w2c[:3, :3])[0], w2c[:3, 3])
-        starts.append(best_angle(fit.axis, fit.point, np.array([pts[int(q)] for q in located[i][1]]),
-                                 located[i][2], cam, k, dist))
-    return starts
+    return [best_angle(fit.axis, fit.point, np.array([pts[int(q)] for q in located[i][1]]), located[i][2],
+                       camera(c2w[i]), k, dist) for i in sorted(located)]
 
 
 def adjusted_poses(kind: str, poses: dict[int, np.ndarray], located: dict[int, Located], pts: dict[int, np.ndarray],
@@ -269,11 +275,11 @@ def adjusted_poses(kind: str, poses: dict[int, np.ndarray], located: dict[int, L
     """The poses, the motion and the points adjusted together (`adjust`), started from `poses`' own fit."""
     views = views_of_poses(poses, c2w, mid)
     fit = fit_hinge(views) if kind == "hinge" else fit_slide(views)
-    moves = {i: motion_in_world(poses[i], c2w[i]) for i in located}
     if kind == "hinge":
         starts = hinge_starts(fit, located, pts, c2w, k, dist)
     else:  # the part's middle, not the world's origin: a free pose's turn noise swings that far
-        starts = [float((moves[i][:3, :3] @ mid + moves[i][:3, 3] - mid) @ fit.axis) for i in sorted(located)]
+        moves = [motion_in_world(poses[i], c2w[i]) for i in sorted(located)]
+        starts = [float((m[:3, :3] @ mid + m[:3, 3] - mid) @ fit.axis) for m in moves]
     return adjust(kind, fit.axis, fit.point, starts, located, pts, c2w, k, dist, move_points=True)
 
 
@@ -282,13 +288,11 @@ def relocate(obs: dict[int, Track], pts: dict[int, np.ndarray], poses: dict[int,
     """Each frame's inliers among the points `pts` (the resting part's frame) under its pose: within PNP_PX."""
     out = {}
     for i, pose in poses.items():
-        ids, xy = obs[i]
-        keep = [j for j, pid in enumerate(ids.tolist()) if pid in pts]
-        obj = np.array([pts[int(ids[j])] for j in keep]).reshape(-1, 3)
+        ids, obj, xy = sighted(obs[i], pts)
         seen = cv2.projectPoints(obj, cv2.Rodrigues(pose[:, :3])[0], pose[:, 3], k, dist)[0].reshape(-1, 2)
-        ok = np.linalg.norm(seen - xy[keep], axis=1) < PNP_PX
+        ok = np.linalg.norm(seen - xy, axis=1) < PNP_PX
         if ok.sum() >= MIN_INLIERS:
-            out[i] = (pose, ids[keep][ok], xy[keep][ok])
+            out[i] = (pose, ids[ok], xy[ok])
     return out
 
 

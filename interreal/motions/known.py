@@ -223,7 +223,7 @@ def adjust(kind: str, axis: np.ndarray, point: np.ndarray, starts: list[float], 
     x0 = np.concatenate([np.zeros(4), starts] + ([points.ravel()] if move_points else []))
     fit = least_squares(residual, x0, loss="soft_l1", f_scale=ROBUST_PX, jac_sparsity=sparsity, x_scale="jac",
                         max_nfev=MAX_STEPS)
-    if not fit.success:  # it did not settle: no measurement (one that wandered read the laptop's lid as 779 deg)
+    if not fit.success:  # it did not settle: a wandering adjustment is no measurement
         return None
     x = fit.x
     if move_points:

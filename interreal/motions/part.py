@@ -329,8 +329,7 @@ def posed_fit(rec, ds, pv: PartViews, states: np.ndarray, known: np.ndarray, lab
     """The motion of one reconstruction from its own poses; where those are refused (a small flat part's
     reconstruction turning with the camera, a bent one), its tracks posed by the known cameras
     (`known.known_camera_motion`) when that locates enough frames and is accepted. Not first: on the real laptop
-    video the lid's own motion is the nearer to the careful reference (0.023 against 0.045 RMSE, docs/measurements.md,
-    2026-12-07)."""
+    video the lid's own motion is the nearer to the careful reference (docs/measurements.md)."""
     own = fit_motion(pv, states[pv.frames], known[pv.frames], labelled[pv.frames], cfg.trust_labels)
     if own[1]["accepted"]:
         return own[0], dict(own[1], poses_from="its own reconstruction")

@@ -100,7 +100,7 @@ def true_masks(ds, cap: Path) -> None:
     trusted, and its transient layer by the simulator's occluders (the person and the arm, instance 255)."""
     import cv2
     from interreal.conventions import frame_index
-    from interreal.motions import silhouette, stage
+    from interreal.motions import part, silhouette
 
     def occluders(root, fid: str, hw: tuple[int, int]) -> np.ndarray:
         inst = cv2.imread(str(cap / "gt" / "instance" / f"{frame_index(fid):05d}.png"), cv2.IMREAD_UNCHANGED)
@@ -108,7 +108,7 @@ def true_masks(ds, cap: Path) -> None:
 
     silhouette.has_transients = lambda root: True
     silhouette.read_transient = occluders
-    stage.mask_confidence = lambda ds, obj: None  # the propagated masks' confidence says nothing of the truth
+    part.mask_confidence = lambda ds, obj: None  # the propagated masks' confidence says nothing of the truth
     own = ds.load_mask
 
     def load(f):

@@ -283,17 +283,17 @@ def smooth_path(curves: np.ndarray, angles: np.ndarray, still: np.ndarray | None
     turn costs `STILL` times more. Why the labels' stillness: a leaf and its mirror image about the plane through its
     axis and the camera cast nearly one silhouette, and the mirror turns as the camera moves; where the part rests,
     only the true leaf stays put."""
-    return _viterbi(curves, SMOOTH * _turns(angles), np.zeros(len(curves), bool) if still is None else still)[0]
+    return viterbi(curves, SMOOTH * turn_degrees(angles), np.zeros(len(curves), bool) if still is None else still)[0]
 
 
-def _turns(angles: np.ndarray) -> np.ndarray:
+def turn_degrees(angles: np.ndarray) -> np.ndarray:
     """(A, A) degrees between the grid's angles, the short way round."""
     n = len(angles)
     diff = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :])
     return np.degrees(angles[1] - angles[0]) * np.minimum(diff, n - diff)
 
 
-def _viterbi(curves: np.ndarray, jump: np.ndarray, still: np.ndarray) -> tuple[np.ndarray, float]:
+def viterbi(curves: np.ndarray, jump: np.ndarray, still: np.ndarray) -> tuple[np.ndarray, float]:
     """`smooth_path`'s grid positions and their total score; `jump` (A, A): what a turn between neighbours costs."""
     n = curves.shape[1]
     score = curves[0].copy()
@@ -317,10 +317,10 @@ def anchored_path(curves: np.ndarray, angles: np.ndarray, still: np.ndarray, end
     camera, so it cannot sit at one angle in frames at one end filmed from different places, however far apart in
     time (a door closed at the start, in the middle and at the end). jump (A, A): what a move between neighbours
     costs (default: `SMOOTH` per degree turned; a slide passes its own)."""
-    jump = SMOOTH * _turns(angles) if jump is None else jump
+    jump = SMOOTH * turn_degrees(angles) if jump is None else jump
     away = STILL * jump  # (A, A): from the shared angle (rows)
     held = curves.copy()
-    path = _viterbi(curves, jump, still)[0]
+    path = viterbi(curves, jump, still)[0]
     for end in ends:
         if end.sum() < 2:
             continue
@@ -328,7 +328,7 @@ def anchored_path(curves: np.ndarray, angles: np.ndarray, still: np.ndarray, end
         for c in range(len(angles)):
             trial = held.copy()
             trial[end] -= away[c]
-            p, score = _viterbi(trial, jump, still)
+            p, score = viterbi(trial, jump, still)
             if score > best[0]:
                 best = (score, c, p)
         held[end] -= away[best[1]]

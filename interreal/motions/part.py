@@ -28,14 +28,17 @@ from ..transients import excluded
 from .fit import PartViews, fit_motion, part_point
 from .known import known_camera_motion
 from .pnp import pnp_views, reference_frames
-from .edge import measure_edge
+from .edge import measure_edge, trusted_frames
 from .prism import measure_prism
+from .reach import reach_hinge
 from .silhouette import Views, measure_silhouettes, views_of
 
 # MotionConfig.route: the route tried first; the others follow, in this order, while no motion is accepted
 ROUTES = ("sfm", "pnp", "silhouette", "edge", "prism")
 # the routes that read the part's masks against the known cameras: (progress label, measure)
 OUTLINE_ROUTES = {"edge": ("static edge", measure_edge), "prism": ("front pulled out", measure_prism)}
+POSE_ROUTES = ("sfm", "pnp")  # the routes that measure the part's pose, only in the frames they register: a hinge
+#                               they give is carried by the masks past its measured angles (`reached`)
 PNP_LONG_SIDE = 800  # the PnP route reads the images at most this large
 RESULT_FILE = "measured.json"  # DS/motions/object_<k>/: the part's finished measurement (`save_result`)
 
@@ -259,11 +262,29 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
             best = (motion, fig)
         elif best[0] is None:
             best[1]["registered"] = max(best[1]["registered"], fig.get("registered", 0))
+    if obj is not None and best[0] is not None and best[1]["accepted"] and best[0].kind == "hinge" \
+            and best[1]["route"] in POSE_ROUTES:
+        step("the masks past its measured angles")
+        views = views_of(ds, obj) if views is None else views
+        best = reached(views, best, ds, obj, states, known, labelled, cfg)
     best[1]["attempts"] = attempts  # the reconstructions tried, whichever route's figures these are
     best[1]["routes"] = tried
     best[1].update({f"{r}_registered": v["registered"] for r, v in tried.items()})
     best[1]["seconds"] = round(time.monotonic() - start, 1)
     return best
+
+
+def reached(views: Views, best: tuple[Articulation, dict[str, Any]], ds, obj: int, states: np.ndarray,
+            known: np.ndarray, labelled: np.ndarray, cfg: MotionConfig) -> tuple[Articulation, dict[str, Any]]:
+    """A hinge measured from poses carried by the part's masks into the frames past its measured angles
+    (`reach.reach_hinge`), where that is accepted; else as it was, with why not."""
+    keys = keyframe_positions(ds)
+    frames = trusted_frames(views, keys, cfg.min_pixels, mask_confidence(ds, obj))
+    motion, fig = reach_hinge(views, best[0], best[1], frames, keys, states, known, labelled, cfg.trust_labels)
+    if motion is not None and fig.get("accepted"):
+        return motion, fig
+    why = fig.get("reach_reason") or f"refused: {fig.get('reason')}"
+    return best[0], {**best[1], **{k: v for k, v in fig.items() if k.startswith("reach_")}, "reach_reason": why}
 
 
 def keyframe_positions(ds) -> list[int]:

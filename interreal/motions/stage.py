@@ -281,7 +281,8 @@ def part_summary(motion: Articulation, fig: dict[str, Any], shown: int) -> dict[
             "route": fig.get("route"), "poses": fig.get("poses_from"), "measured_frames": len(states),
             "shown_frames": shown,
             "states": [round(min(states), 2), round(max(states), 2)] if states else None,
-            "flagged_labels": len(fig.get("flagged_labels", [])), "ends_from": fig.get("ends_from", "")}
+            "flagged_labels": len(fig.get("flagged_labels", [])), "ends_from": fig.get("ends_from", ""),
+            "read_by_masks": 0 if fig.get("reach_reason") else int(fig.get("reach_beyond") or 0)}
 
 
 def part_line(name: str, p: dict[str, Any]) -> str:
@@ -289,7 +290,9 @@ def part_line(name: str, p: dict[str, Any]) -> str:
     states -0.01 to 1.02."""
     how = p["route"] + (" posed by the known cameras" if p.get("poses") == "known cameras" else "")
     return (f"'{name}': {p['kind']} of {p['range']:g} {p['unit']} by {how}, {p['measured_frames']} of "
-            f"{p['shown_frames']} frames" + (f", states {p['states'][0]:g} to {p['states'][1]:g}" if p["states"] else "")
+            f"{p['shown_frames']} frames" + (f" ({p['read_by_masks']} past its measured angles read by their masks)"
+                                             if p.get("read_by_masks") else "")
+            + (f", states {p['states'][0]:g} to {p['states'][1]:g}" if p["states"] else "")
             + (f"; {p['flagged_labels']} label(s) flagged" if p["flagged_labels"] else ""))
 
 

@@ -9,6 +9,7 @@ from edge_scenes import KEYS, TALL, capture
 from interreal.dataset import Articulation
 from interreal.motions import part_line, part_summary
 from interreal.motions.edge import trusted_frames
+from interreal.motions.fit import LABELS_LINE
 from interreal.motions.reach import MIN_BEYOND, reach_hinge
 from interreal.motions.silhouette import views_of
 
@@ -20,7 +21,8 @@ def _half_measured(truth: np.ndarray, reach: float = 0.5) -> tuple[Articulation,
     the end it measured: its states 0 to 1 over what it saw, so its range is `reach` of the truth."""
     seen = np.flatnonzero(truth <= reach)
     fig = {"frame_states": [[int(i), float(truth[i] / reach)] for i in seen], "accepted": True, "route": "sfm",
-           "rot_noise_deg": 0.3, "reason": ""}
+           "rot_noise_deg": 0.3, "reason": "", "ends_from": f"closed end 0: labelled; open end 1: {LABELS_LINE} (no "
+                                                              f"label says 1)"}
     return Articulation("hinge", np.array([0.0, 0.0, -1.0]), TALL[0].copy(), reach * TURN, dict(fig)), fig
 
 
@@ -61,6 +63,24 @@ def test_two_frames_past_the_measured_angles_are_not_enough():
     assert "beyond the measured angles" in out["reach_reason"]
 
 
+def test_masks_that_run_ahead_of_the_part_right_after_it_rests_are_not_joined_to_the_measured_frames():
+    """The masks of the frames as the door starts to open show it at the open end (a propagated mask running ahead):
+    they read far past the measured angles and agree with one another, but none is a plausible step from the
+    registered frame beside them; the open stretch's own frames still are."""
+    ds, truth, st, kn, labelled, masks = capture("hinge")
+    moving = np.flatnonzero((truth > 0.0) & (truth < 0.5) & (np.arange(len(truth)) < 20))
+    for i in moving:
+        masks[i] = masks[22]
+    ds.load_mask = lambda f: masks[f.index]
+    motion, fig = _half_measured(truth)
+    fig["frame_states"] = [row for row in fig["frame_states"] if row[0] not in moving]
+    reached, out = _reach(ds, motion, fig, st, kn, labelled)
+    assert reached is not None, out
+    rows = dict((int(f), s) for f, s in out["frame_states"])
+    assert not any(i in rows for i in moving), [(i, rows.get(i)) for i in moving]
+    assert abs(np.degrees(reached.range) - 80) < 3
+
+
 def test_a_leaf_that_does_not_explain_the_registered_frames_carries_nothing():
     """The measured axis far from the door's edge (a wrong hinge): the leaf on it cannot overlap the registered
     frames' masks at their measured angles, and nothing is read."""
@@ -77,3 +97,28 @@ def test_the_summary_says_how_many_frames_the_masks_read():
     reached, out = _reach(ds, motion, fig, st, kn, labelled)
     line = part_line("door", part_summary(reached, out, shown=50))
     assert f"({out['reach_beyond']} past its measured angles read by their masks)" in line, line
+
+
+def test_a_pose_routes_hinge_is_reached_from_the_keyframes_the_dataset_lists(tmp_path):
+    """`part.reached`, as `measure_part` calls it after an accepted sfm or pnp hinge: the keyframes are those the
+    dataset lists; without a frame past the measured angles the route's motion stands, with why, in its figures."""
+    from interreal.conventions import fid_of_index
+    from interreal.layout import KEYFRAMES_DIR
+    from interreal.motions.part import MotionConfig, reached
+
+    ds, truth, st, kn, labelled, masks = capture("hinge", root=tmp_path)
+    ds.object_names = ["door"]
+    (tmp_path / KEYFRAMES_DIR).mkdir()
+    for k in KEYS:
+        (tmp_path / KEYFRAMES_DIR / f"{fid_of_index(k)}.png").write_bytes(b"")
+    cfg = MotionConfig(min_pixels=50)
+    motion, fig = _half_measured(truth)
+    got, out = reached(views_of(ds, 0), (motion, fig), ds, 0, st, kn, labelled, cfg)
+    assert got is not motion and out["accepted"] and abs(np.degrees(got.range) - 80) < 3
+    motion, fig = _half_measured(truth, reach=1.0)  # it registered every frame: nothing past its angles
+    got, out = reached(views_of(ds, 0), (motion, fig), ds, 0, st, kn, labelled, cfg)
+    assert got is motion and out["accepted"] and "beyond the measured angles" in out["reach_reason"]
+    motion, fig = _half_measured(truth)
+    fig["ends_from"] = "closed end 0: labelled; open end 1: labelled"  # the route measured both ends: its own stand
+    got, out = reached(views_of(ds, 0), (motion, fig), ds, 0, st, kn, labelled, cfg)
+    assert got is motion and out is fig and "reach_beyond" not in out

@@ -3,7 +3,7 @@
 One module per route, one for the decision they share, and the stage that runs them:
 - `stage`: the command (`estimate_motions`): every part measured (several at once, a process each), the report;
 - `part`: one part: its masks, its own SfM (the first route), the routes in turn (`measure_part`);
-- `known`: a refused own reconstruction's tracks posed by the known cameras, moved only as a hinge or slide can;
+- `known`: a refused own reconstruction's (or a slide's) tracks posed by the known cameras, moved as the kind can;
 - `reach`: a hinge from poses carried by the part's masks into the frames past the angles its route registered;
 - `pnp`: the part triangulated where it rests with the known cameras, then located in every frame by PnP;
 - `silhouette`: a part too plain for both: its flat front from its masks, the motion whose silhouettes fit them;

@@ -4,7 +4,8 @@ The part's own SfM (`part.map_part`) finds the part's cameras from the part's pi
 part (a drawer's front) seen over a narrow arc leaves their rotation and translation traded against each other,
 and the reconstruction can read the camera's own turn as the part's: a drawer then comes out as a hinge turning
 with the camera and is refused (`fit.turns_with_camera`; 3 of the 6 textured simulated drawers). Its feature tracks
-are sound; only its poses are not. Where its own motion is refused (`part.posed_fit`):
+are sound; only its poses are not. And a slide's length is in the scene's units, which its own reconstruction
+reaches only through a fitted scale. Where its own motion is refused, or is a slide (`part.posed_fit`):
 1. the tracks seen over a stretch where the labels say the part rests (`pnp.reference_frames`) are triangulated with
    the known cameras: world units, and the baseline of that whole stretch of the capture;
 2. every registered frame's camera relative to the resting part by PnP on those points (`pnp.solve_pnp`);

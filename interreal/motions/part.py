@@ -30,7 +30,7 @@ from .known import known_camera_motion
 from .pnp import pnp_views, reference_frames
 from .edge import measure_edge, trusted_frames
 from .prism import measure_prism
-from .reach import reach_hinge
+from .reach import reach_hinge, unmeasured
 from .silhouette import Views, measure_silhouettes, views_of
 
 # MotionConfig.route: the route tried first; the others follow, in this order, while no motion is accepted
@@ -277,7 +277,11 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
 def reached(views: Views, best: tuple[Articulation, dict[str, Any]], ds, obj: int, states: np.ndarray,
             known: np.ndarray, labelled: np.ndarray, cfg: MotionConfig) -> tuple[Articulation, dict[str, Any]]:
     """A hinge measured from poses carried by the part's masks into the frames past its measured angles
-    (`reach.reach_hinge`), where that is accepted; else as it was, with why not."""
+    (`reach.reach_hinge`) where an end of it is not one the route measured and a label confirms (`reach.unmeasured`),
+    and that is accepted; else as it was, with why not. Why only there: where the route measured both ends, its
+    poses read them better than a rectangle fitted to masks."""
+    if not unmeasured(best[1]):
+        return best
     keys = keyframe_positions(ds)
     frames = trusted_frames(views, keys, cfg.min_pixels, mask_confidence(ds, obj))
     motion, fig = reach_hinge(views, best[0], best[1], frames, keys, states, known, labelled, cfg.trust_labels)
@@ -348,18 +352,21 @@ def _measure_part_sfm(pc, ds, names: list[str], part: Path, states: np.ndarray, 
 def posed_fit(rec, ds, pv: PartViews, states: np.ndarray, known: np.ndarray, labelled: np.ndarray,
               cfg: MotionConfig) -> tuple[Articulation, dict[str, Any]]:
     """The motion of one reconstruction from its own poses; where those are refused (a small flat part's
-    reconstruction turning with the camera, a bent one), its tracks posed by the known cameras
-    (`known.known_camera_motion`) when that locates enough frames and is accepted. Not first: on the real laptop
-    video the lid's own motion is the nearer to the careful reference (docs/measurements.md)."""
+    reconstruction turning with the camera, a bent one), or give a slide, its tracks posed by the known cameras
+    (`known.known_camera_motion`) when that locates enough frames and is accepted (a slide only as a slide). Why a
+    slide: its length is in the scene's units, which its own reconstruction reaches only through the scale that fits
+    its positions to the cameras', while the known cameras triangulate its points in those units. A hinge's angle
+    needs no scale, and on the real laptop video the lid's own motion is the nearer to the careful reference."""
     own = fit_motion(pv, states[pv.frames], known[pv.frames], labelled[pv.frames], cfg.trust_labels)
-    if own[1]["accepted"]:
+    if own[1]["accepted"] and own[0].kind != "slide":
         return own[0], dict(own[1], poses_from="its own reconstruction")
     motion, fig = known_camera_motion(rec, ds, states, known, labelled, cfg.trust_labels)
     enough = (motion is not None and fig["registered"] >= cfg.min_registered
               and fig["at_known_state"] >= cfg.min_known)
-    if enough and fig["accepted"]:
+    if enough and fig["accepted"] and (not own[1]["accepted"] or motion.kind == own[0].kind):
         return motion, fig
     why = (fig.get("known_reason") or f"located {fig.get('known_located', 0)} frames" if not enough
+           else f"a {motion.kind}, not the slide its own poses give" if fig["accepted"]
            else f"refused: {fig['reason']}")
     return own[0], dict(own[1], poses_from="its own reconstruction", known_cameras=why)
 

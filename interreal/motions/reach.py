@@ -7,9 +7,11 @@ textured doors with eyeballed labels: the registered frames reach 0.26-0.52 of t
 off). The masks still show the part there. With the axis measured, one rectangle hinged on it (`leaf.fit_leaf`)
 casts each frame's silhouette at each angle; the registered frames pin the leaf's angle at rest (their measured
 angles, shifted by one offset that fits their masks best) and every other frame's angle follows its mask along a
-smooth path through them (`edge`'s dynamic programming). The route's measured frames are kept as they are; the
-reached frames only add states, and the whole is judged again (`fit.articulate`), so the measured ends of the
-motion, not the labels' line, become its states 0 and 1.
+smooth path through them (`edge`'s dynamic programming). The route's measured frames are kept as they are; only
+frames well past its angles, joined to them at a pace the part keeps (`connected`), add states, and the whole is
+judged again (`fit.articulate`), so the measured ends of the motion, not the labels' line, become its states 0 and
+1. Only where an end is not one the route measured (`unmeasured`): where it measured both, its poses read them
+better than a rectangle fitted to masks.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import numpy as np
 from ..dataset import Articulation
 from .edge import (ANGLES, MIN_FRAME_IOU, SEARCH_SIDE, SMOOTH, end_samples, label_ends, refine, turn_degrees,
                    viterbi)
-from .fit import Fit, articulate
+from .fit import JUMP, LABELS_LINE, UNLABELLED_END, Fit, articulate
 from .leaf import Leaf, Line, crest, fit_leaf, iou_curves
 from .silhouette import Silhouettes, Views
 
@@ -30,9 +32,13 @@ SPAN = (5.0, 95.0)   # the leaf's extent along the axis: these percentiles of wh
 RAYS = 400           # ... over about this many mask pixels a keyframe
 PIN = 0.2            # overlap a registered frame's path loses per degree away from its measured angle
 MIN_AGREE = 0.6      # the leaf at the registered frames' measured angles must overlap their masks this well (mean)
-BEYOND = np.radians(2.5)  # a frame adds a state only this far past the measured angles: within them the route's
-#                           own states stand (a propagated mask that kept an old shape fits an old angle well)
+BEYOND = np.radians(2.5)  # a frame adds a state only this far past the measured angles, or PAST_SHARE of their
+PAST_SHARE = 0.1          # span if more: within them the route's own states stand (a propagated mask that kept an
+#                           old shape fits an old angle well), and a frame just past them gains little and may be a
+#                           mask running ahead of the part
 MIN_BEYOND = 3       # ... and only where this many frames do (one frame past the end is a stray mask)
+GAP = 6              # a frame joins the measured ones through neighbours at most this many frames apart ...
+FASTER = 2.0         # ... turning at most this many times as fast as between neighbouring measured frames
 
 
 def axis_segment(views: Views, keys: list[int], axis: np.ndarray, point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -73,6 +79,45 @@ def rest_offset(sil: Silhouettes, leaf: Leaf, size: np.ndarray, frames: list[int
     values = np.array([mean(g) for g in grid])
     best, theta = crest(mean, grid, values)
     return theta, best
+
+
+def unmeasured(fig: dict[str, Any]) -> bool:
+    """Whether an end of the motion in `fig` is the labels' guess or the measured extent with no label near it
+    (`fit.end_state`): where reading the masks past the measured angles can measure it."""
+    ends = fig.get("ends_from", "")
+    return LABELS_LINE in ends or UNLABELLED_END in ends
+
+
+def connected(frames: np.ndarray, d: np.ndarray, pinned: np.ndarray, candidate: np.ndarray) -> np.ndarray:
+    """(F,) bool: the `candidate` frames joined to a `pinned` one through frames kept: each at most `GAP` frames
+    from the nearest kept on either side and turned from each at most `FASTER` times as fast as the part turns
+    between neighbouring pinned frames (a quarter of the span a frame where none are neighbours: `fit.jumpy_frames`'
+    bound). Why: a propagated mask that runs ahead of the part reads far past the measured angles right after a
+    registered frame near rest, and a run of such frames agrees with itself, so no single-frame check sees it; a
+    person opens a part at one pace, not several times faster where the route lost it."""
+    order = np.argsort(frames, kind="stable")
+    at = order[pinned[order]]
+    gaps = np.diff(frames[at]).astype(float)
+    near = (gaps > 0) & (gaps <= GAP)
+    speed = float(np.max(np.abs(np.diff(d[at]))[near] / gaps[near])) if near.any() else 0.0
+    use = pinned | candidate
+    limit = FASTER * speed if speed > 0 else JUMP * (float(np.ptp(d[use])) if use.any() else 0.0)
+    keep = pinned.copy()
+    grown = True
+    while grown:
+        grown = False
+        for n in order[candidate[order] & ~keep[order]]:
+            sides = [k for k in (_nearest(frames, keep, n, -1), _nearest(frames, keep, n, 1)) if k is not None]
+            if sides and all(abs(d[n] - d[m]) <= limit * abs(int(frames[n]) - int(frames[m])) for m in sides):
+                keep[n] = grown = True
+    return keep & candidate
+
+
+def _nearest(frames: np.ndarray, keep: np.ndarray, n: int, side: int) -> int | None:
+    """The kept frame nearest frame n on one side (-1 before, +1 after), within `GAP` frames, or None."""
+    gap = (frames - frames[n]) * side
+    idx = np.flatnonzero(keep & (gap > 0) & (gap <= GAP))
+    return int(idx[np.argmin(gap[idx])]) if len(idx) else None
 
 
 def reach_hinge(views: Views, motion: Articulation, fig: dict[str, Any], frames: list[int], keys: list[int],
@@ -118,12 +163,15 @@ def reach_hinge(views: Views, motion: Articulation, fig: dict[str, Any], frames:
     first = int(np.flatnonzero(pinned)[0])
     phi -= 2 * np.pi * np.round((phi[first] - theta - at_rel[shown[first]]) / (2 * np.pi))  # the turn it is on
     d = phi - theta
-    beyond = ~pinned & (iou >= MIN_FRAME_IOU) & ((d > rel.max() + BEYOND) | (d < rel.min() - BEYOND))
+    past = max(BEYOND, PAST_SHARE * float(np.ptp(rel)))
+    beyond = ~pinned & (iou >= MIN_FRAME_IOU) & ((d > rel.max() + past) | (d < rel.min() - past))
+    beyond &= connected(np.array(shown), np.array([at_rel.get(i, v) for i, v in zip(shown, d)]), pinned, beyond)
     out.update(reach_beyond=int(beyond.sum()),
                reach_mean_iou=round(float(iou[beyond].mean()), 3) if beyond.any() else None)
     if beyond.sum() < MIN_BEYOND:
         out["reach_reason"] = (f"{int(beyond.sum())} frames it did not register overlap the leaf by {MIN_FRAME_IOU} "
-                               f"or more beyond the measured angles (need {MIN_BEYOND})")
+                               f"or more {np.degrees(past):.1f} deg or further beyond the measured angles, joined "
+                               f"to them (need {MIN_BEYOND})")
         return None, out
     added = {i: float(v) for i, v, b in zip(shown, d, beyond) if b}
     at = np.array(sorted(set(measured) | set(added)))

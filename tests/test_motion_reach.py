@@ -122,3 +122,17 @@ def test_a_pose_routes_hinge_is_reached_from_the_keyframes_the_dataset_lists(tmp
     fig["ends_from"] = "closed end 0: labelled; open end 1: labelled"  # the route measured both ends: its own stand
     got, out = reached(views_of(ds, 0), (motion, fig), ds, 0, st, kn, labelled, cfg)
     assert got is motion and out is fig and "reach_beyond" not in out
+
+
+def test_the_warning_that_a_range_rests_on_the_labels_says_why_the_masks_did_not_carry_it():
+    from interreal.motions.stage import ends_warnings
+
+    ds, truth, st, kn, labelled, masks = capture("hinge")
+    for i in np.flatnonzero(truth > 0.5):
+        masks[i] = np.zeros_like(masks[i])  # the masks lost the door as it opened further
+    ds.load_mask = lambda f: masks[f.index]
+    motion, fig = _half_measured(truth)
+    reached, out = _reach(ds, motion, fig, st, kn, labelled)
+    assert reached is None
+    (text, cause), = ends_warnings("door", {**fig, **out})
+    assert cause == "ends-from-labels" and "its masks past there: 0 of the frames it did not register" in text, text

@@ -169,9 +169,9 @@ def reach_hinge(views: Views, motion: Articulation, fig: dict[str, Any], frames:
     out.update(reach_beyond=int(beyond.sum()),
                reach_mean_iou=round(float(iou[beyond].mean()), 3) if beyond.any() else None)
     if beyond.sum() < MIN_BEYOND:
-        out["reach_reason"] = (f"{int(beyond.sum())} frames it did not register overlap the leaf by {MIN_FRAME_IOU} "
-                               f"or more {np.degrees(past):.1f} deg or further beyond the measured angles, joined "
-                               f"to them (need {MIN_BEYOND})")
+        out["reach_reason"] = (f"{int(beyond.sum())} of the frames it did not register show it {np.degrees(past):.1f}"
+                               f" deg or more beyond the measured angles (a leaf on its axis overlapping their masks "
+                               f"by {MIN_FRAME_IOU} or more, at the pace it keeps; need {MIN_BEYOND})")
         return None, out
     added = {i: float(v) for i, v, b in zip(shown, d, beyond) if b}
     at = np.array(sorted(set(measured) | set(added)))

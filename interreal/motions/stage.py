@@ -87,9 +87,10 @@ def ends_warnings(name: str, fig: dict[str, Any]) -> list[tuple[str, str]]:
     if UNLABELLED_END in ends:
         out.append((f"'{name}': {ends}: label a frame at each end to be sure", "ends-from-geometry"))
     if LABELS_LINE in ends:
+        masks = f"; its masks past there: {fig['reach_reason']}" if fig.get("reach_reason") else ""
         out.append((f"'{name}': no route measured it further than the frames labelled there, so its range comes from "
-                    f"the labels ({ends}): check the labels near that end, or film the part at its ends where it can "
-                    f"be seen", "ends-from-labels"))
+                    f"the labels ({ends}{masks}): check the labels near that end, or film the part at its ends where "
+                    f"it can be seen", "ends-from-labels"))
     return out
 
 

@@ -206,6 +206,8 @@ def test_motions_name_the_labels_that_disagree_and_report_progress(monkeypatch, 
     monkeypatch.setattr(part, "match_part", lambda *a, **k: tmp_path / "database.db")
     monkeypatch.setattr(part, "map_part", lambda *a, **k: 0)
     monkeypatch.setattr(part, "part_views", lambda rec, ds: pv)
+    monkeypatch.setattr(part, "known_camera_motion",  # no tracks to pose: the slide's own poses stand
+                        lambda *a, **k: (None, {"registered": 0, "at_known_state": 0, "known_reason": "no tracks"}))
     part.measure_part(None, None, [], tmp_path, states, known, part.MotionConfig(attempts=3, route="sfm"),
                       phases.append)
     assert phases == ["matching", "reconstruction 1/3"]

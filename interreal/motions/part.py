@@ -263,7 +263,7 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
         elif best[0] is None:
             best[1]["registered"] = max(best[1]["registered"], fig.get("registered", 0))
     if obj is not None and best[0] is not None and best[1]["accepted"] and best[0].kind == "hinge" \
-            and best[1]["route"] in POSE_ROUTES:
+            and best[1]["route"] in POSE_ROUTES and unmeasured(best[1]):  # the masks are read only then
         step("the masks past its measured angles")
         views = views_of(ds, obj) if views is None else views
         best = reached(views, best, ds, obj, states, known, labelled, cfg)
@@ -277,9 +277,9 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
 def reached(views: Views, best: tuple[Articulation, dict[str, Any]], ds, obj: int, states: np.ndarray,
             known: np.ndarray, labelled: np.ndarray, cfg: MotionConfig) -> tuple[Articulation, dict[str, Any]]:
     """A hinge measured from poses carried by the part's masks into the frames past its measured angles
-    (`reach.reach_hinge`) where an end of it is not one the route measured and a label confirms (`reach.unmeasured`),
-    and that is accepted; else as it was, with why not. Why only there: where the route measured both ends, its
-    poses read them better than a rectangle fitted to masks."""
+    (`reach.reach_hinge`) where an end of it is not one the route measured and a label confirms (`reach.unmeasured`;
+    `measure_part` reads the masks only then), and that is accepted; else as it was, with why not. Why only there:
+    where the route measured both ends, its poses read them better than a rectangle fitted to masks."""
     if not unmeasured(best[1]):
         return best
     keys = keyframe_positions(ds)

@@ -130,17 +130,17 @@ def reach_hinge(views: Views, motion: Articulation, fig: dict[str, Any], frames:
     keys = [k for k in keys if k in frames]
     if not keys or not measured:
         return None, {"reach_reason": "no keyframe mask or no measured frame to start from"}
-    p, q = axis_segment(views, keys, motion.axis, motion.origin)
-    cam = -views.w2c[keys[0]][:3, :3].T @ views.w2c[keys[0]][:3, 3]
-    line = Line.seen_from(p, q, 0.0, keys[0], cam)
-    coarse, sil = Silhouettes(views, frames, SEARCH_SIDE), Silhouettes(views, frames)
+    sil = Silhouettes(views, frames)
     shown = [i for i in frames if i in sil.crop]
-    still, ends = label_ends(shown, states, known)
-    size, size_fit = fit_leaf(coarse, line, shown, keys, end_samples(shown, ends))
-    leaf = Leaf(line)
     reg = [i for i in shown if i in measured]
     if not reg:
         return None, {"reach_reason": "no frame it measured has a mask the masks stage trusts"}
+    p, q = axis_segment(views, keys, motion.axis, motion.origin)
+    cam = -views.w2c[keys[0]][:3, :3].T @ views.w2c[keys[0]][:3, 3]
+    line = Line.seen_from(p, q, 0.0, keys[0], cam)
+    still, ends = label_ends(shown, states, known)
+    size, size_fit = fit_leaf(Silhouettes(views, frames, SEARCH_SIDE), line, shown, keys, end_samples(shown, ends))
+    leaf = Leaf(line)
     rel = motion.range * np.array([measured[i] for i in reg])
     theta, agree = rest_offset(sil, leaf, size, reg, rel)
     out: dict[str, Any] = {"reach_leaf": [round(float(v), 3) for v in size], "reach_leaf_iou": round(size_fit, 3),

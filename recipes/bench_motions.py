@@ -17,7 +17,8 @@ bar: such labels never stop a measured motion).
 
 `--true-masks` gives every route the simulator's own masks in place of the propagated ones: what the motion routes
 can do with perfect masks, apart from what propagation loses. `--follow N` annotates the frames the masks stage asks
-for next (with the truth) until the capture has N keyframes, as a user who follows its advice would.
+for next (with the truth) until the capture has N keyframes, as a user who follows its advice would; `--draw-asked`
+annotates the frames the motions stage asks for where an end of a motion is the labels' guess, then measures again.
 """
 
 from __future__ import annotations
@@ -81,6 +82,31 @@ def follow_suggestions(cap: Path, ds: Path, keyframes: int, paint: bool) -> tupl
         inst = cv2.imread(str(cap / "gt" / "instance" / f"{int(picks[0]):05d}.png"), cv2.IMREAD_UNCHANGED)
         atomic.write_image(kdir / f"{picks[0]}.png", annotation_index(inst, paint_occluders=paint))
         added.append(picks[0])
+
+
+def draw_asked(cap: Path, ds: Path, fids: list[str]) -> Path:
+    """A copy of the dataset whose masks come from the capture's keyframes plus the frames `interreal motions` asked
+    a person to draw (where an end of a motion was the labels' guess), annotated with the simulator's truth as a
+    careful person would; `interreal masks` re-run on it, the poses kept."""
+    import shutil
+
+    import cv2
+
+    from interreal import atomic
+    from interreal.masks import propagate
+    from interreal.synth.capture import annotation_index
+
+    out, kdir = ds.parent / "ds_drawn", ds.parent / "keys_drawn"
+    for d in (out, kdir):
+        if d.exists():
+            shutil.rmtree(d)
+    shutil.copytree(ds, out)
+    shutil.copytree(cap / "annotations" / "keyframes", kdir)
+    for fid in fids:
+        inst = cv2.imread(str(cap / "gt" / "instance" / f"{int(fid):05d}.png"), cv2.IMREAD_UNCHANGED)
+        atomic.write_image(kdir / f"{fid}.png", annotation_index(inst))
+    propagate(out, kdir, progress=False, preview="none")
+    return out
 
 
 def score(motion, fig: dict[str, Any], truth, true_states: np.ndarray) -> dict[str, Any]:
@@ -186,6 +212,7 @@ def run_part(ds_path: Path, cap: Path, o: int, route: str, truth_masks: bool = F
            "seconds": round(time.perf_counter() - t0, 1)}
     if route == "stage":
         out["route_used"] = next((r for r, v in fig.get("routes", {}).items() if v["accepted"]), None)
+        out["draw_asked"] = [ds.frames[i].fid for i in fig.get("draw_frames") or []]
     return out
 
 
@@ -203,6 +230,9 @@ def main() -> int:
         p.add_argument("--follow", type=int, default=0, metavar="N",
                        help="the masks stage's suggested frames annotated (with the truth) until N keyframes, as a user "
                             "who follows its advice would (the masks re-made, the poses kept)")
+        p.add_argument("--draw-asked", action="store_true",
+                       help="the frames `interreal motions` asks a person to draw (where an end of a motion is the "
+                            "labels' guess) annotated with the truth, the masks re-made, the motions measured again")
         p.add_argument("--eyeballed", type=float, default=0.0, metavar="SPREAD",
                        help="labels as a person eyeballs them: the ends right, every state between moved by up to "
                             "SPREAD (e.g. 0.5; seeded); the truth still scores")
@@ -220,6 +250,12 @@ def main() -> int:
             ds, added = follow_suggestions(cap, ds, args.follow, args.paint_occluders)
             kdir = ds.parent / f"keys_follow{args.follow}"
             print(f"seed {seed}: keyframes added where the masks stage asked: {added or 'none (already there)'}")
+        if args.draw_asked:  # the frames the stage asks for, drawn (with the truth), then the masks and motions again
+            firsts = [run_part(ds, cap, o, "stage", args.true_masks, args.eyeballed, seed) for o in range(2)]
+            asked = sorted({f for r in firsts for f in r["draw_asked"]})
+            print(f"seed {seed}: frames the motions stage asked to draw: {asked or 'none'}")
+            if asked:
+                ds, kdir = draw_asked(cap, ds, asked), ds.parent / "keys_drawn"
         js = mask_j(ds, cap, {int(p.stem) for p in kdir.glob("*.png")})
         print(f"seed {seed}: the masks' J over the frames between keyframes: {js}")
         for o in range(2):
@@ -235,9 +271,10 @@ def main() -> int:
                           "worst_state_rmse", "mask_j_worst_first"], f"measured right (the kind, axis <= {RIGHT_AXIS_DEG} deg, range within "
                                                f"{RIGHT_RANGE:.0%}), worst first")
     name = "motions" + ("_hard" if args.hard else "") + ("_true_masks" if args.true_masks else "") + \
-        (f"_follow{args.follow}" if args.follow else "") + (f"_eyeballed{args.eyeballed:g}" if args.eyeballed else "")
+        (f"_follow{args.follow}" if args.follow else "") + ("_drawn" if args.draw_asked else "") + \
+        (f"_eyeballed{args.eyeballed:g}" if args.eyeballed else "")
     write_results(args.out, name, runs, frames=frames, size=list(size), seeds=seeds, synth=synth, summary=summary,
-                  follow=args.follow, eyeballed=args.eyeballed)
+                  follow=args.follow, eyeballed=args.eyeballed, draw_asked=args.draw_asked)
     return 0
 
 

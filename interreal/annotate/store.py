@@ -31,7 +31,7 @@ from ..dataset import (image_hw, list_images, read_image_rgb, read_labels_raw, r
 from ..errors import DatasetError, InputError, InterRealError
 from ..layout import KEYFRAMES_DIR
 from ..masks.labelme import rasterise as rasterise_labelme
-from ..motions import flagged_labels
+from ..motions import flagged_labels, frames_asked
 from ..report import read_report
 from ..transients import IGNORE, read_transient
 from .clicking import check_object, click_region, parse_clicks, propagated
@@ -235,7 +235,18 @@ class DatasetStore:
                 if not reason:
                     reason = _low_confidence(confidence, fid)
                 out.append({"fid": fid, "reason": reason})
-        return self._label_flags() + _fine_part_flags(rep, figures) + out
+        return self._label_flags() + self._draw_asks() + _fine_part_flags(rep, figures) + out
+
+    def _draw_asks(self) -> list[dict[str, Any]]:
+        """Frames the motions report asks a part's mask on: an end of its motion is the labels' guess there."""
+        try:
+            asks = frames_asked(self.ds)
+        except (OSError, ValueError):
+            return []
+        have = {fid_of_index(i) for i in self._frames}
+        return [{"fid": a["fid"], "reason": f"draw '{a['object']}' here: no route followed it to this end of its "
+                                            f"motion, so its range is the labels' guess"}
+                for a in asks if a["fid"] in have]
 
     def _label_flags(self) -> list[dict[str, Any]]:
         """Labels the motions report names as likely mistakes (the geometry measured another state there)."""

@@ -4,7 +4,8 @@ One module per route, one for the decision they share, and the stage that runs t
 - `stage`: the command (`estimate_motions`): every part measured (several at once, a process each), the report;
 - `part`: one part: its masks, its own SfM (the first route), the routes in turn (`measure_part`);
 - `known`: a refused own reconstruction's (or a slide's) tracks posed by the known cameras, moved as the kind can;
-- `reach`: a hinge from poses carried by the part's masks into the frames past the angles its route registered;
+- `reach`: a hinge from poses carried by the part's masks into the frames past the angles its route registered,
+  and the frames a person is asked to draw where an end is still the labels' guess;
 - `pnp`: the part triangulated where it rests with the known cameras, then located in every frame by PnP;
 - `silhouette`: a part too plain for both: its flat front from its masks, the motion whose silhouettes fit them;
 - `edge`: a plain door or lid cut by the image border, hinged on the one edge of its outline that stays put;
@@ -16,9 +17,9 @@ A new route is a module here that returns what `fit.articulate` reads.
 
 from .fit import PartViews, fit_motion
 from .part import MotionConfig, PartMasks, measure_part, part_masks, part_pairs
-from .stage import (add_arguments, estimate_motions, flagged_labels, frame_state_rows, main, part_line, part_summary,
-                    routes_text)
+from .stage import (add_arguments, estimate_motions, flagged_labels, frame_state_rows, frames_asked, main, part_line,
+                    part_summary, routes_text)
 
 __all__ = ["MotionConfig", "PartMasks", "PartViews", "add_arguments", "estimate_motions", "fit_motion",
-           "flagged_labels", "frame_state_rows", "main", "measure_part", "part_line", "part_masks", "part_pairs",
-           "part_summary", "routes_text"]
+           "flagged_labels", "frame_state_rows", "frames_asked", "main", "measure_part", "part_line", "part_masks",
+           "part_pairs", "part_summary", "routes_text"]

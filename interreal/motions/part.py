@@ -30,7 +30,7 @@ from .known import known_camera_motion
 from .pnp import pnp_views, reference_frames
 from .edge import measure_edge, trusted_frames
 from .prism import measure_prism
-from .reach import reach_hinge, unmeasured
+from .reach import frames_to_draw, reach_hinge, unmeasured
 from .silhouette import Views, measure_silhouettes, views_of
 
 # MotionConfig.route: the route tried first; the others follow, in this order, while no motion is accepted
@@ -267,6 +267,9 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
         step("the masks past its measured angles")
         views = views_of(ds, obj) if views is None else views
         best = reached(views, best, ds, obj, states, known, labelled, cfg)
+    if obj is not None and best[0] is not None and best[1]["accepted"]:  # an end the labels' guess: frames to draw
+        best[1]["draw_frames"] = frames_to_draw(best[1], len(ds.frames), keyframe_positions(ds),
+                                                suggested_positions(ds))
     best[1]["attempts"] = attempts  # the reconstructions tried, whichever route's figures these are
     best[1]["routes"] = tried
     best[1].update({f"{r}_registered": v["registered"] for r, v in tried.items()})
@@ -300,6 +303,13 @@ def keyframe_positions(ds) -> list[int]:
         listed = {p.stem: p.name for p in (ds.root / KEYFRAMES_DIR).iterdir() if p.suffix in (".png", ".json")}
     at = {fid: i for i, fid in enumerate(fids)}
     return sorted(at[k] for k in listed if k in at)
+
+
+def suggested_positions(ds) -> list[int]:
+    """Dataset positions of the frames the masks stage asks a person to draw next (its report), its order kept."""
+    fids = ((read_report(ds.root, "masks") or {}).get("figures") or {}).get("suggested_frames") or []
+    at = {f.fid: i for i, f in enumerate(ds.frames)}
+    return [at[f] for f in fids if isinstance(f, str) and f in at]
 
 
 def mask_confidence(ds, obj: int) -> np.ndarray | None:

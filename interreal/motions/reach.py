@@ -6,12 +6,13 @@ side or its edge to the camera, nothing registers, and the open end of the motio
 textured doors with eyeballed labels: the registered frames reach 0.26-0.52 of the way open, the range then 24-79 %
 off). The masks still show the part there. With the axis measured, one rectangle hinged on it (`leaf.fit_leaf`)
 casts each frame's silhouette at each angle; the registered frames pin the leaf's angle at rest (their measured
-angles, shifted by one offset that fits their masks best) and every other frame's angle follows its mask along a
-smooth path through them (`edge`'s dynamic programming). The route's measured frames are kept as they are; only
+angles, shifted by one offset that fits their masks best) and, with it, its size (`fit_measured`), and every other
+frame's angle follows its mask along a smooth path through them (`edge`'s dynamic programming). The route's measured frames are kept as they are; only
 frames well past its angles, joined to them at a pace the part keeps (`connected`), add states, and the whole is
 judged again (`fit.articulate`), so the measured ends of the motion, not the labels' line, become its states 0 and
 1. Only where an end is not one the route measured (`unmeasured`): where it measured both, its poses read them
-better than a rectangle fitted to masks.
+better than a rectangle fitted to masks. Where an end stays the labels' guess (the masks lost the part there),
+`frames_to_draw` names the frames a person's masks would let this reading reach.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scipy.optimize import minimize
 
 from ..dataset import Articulation
 from .edge import (ANGLES, MIN_FRAME_IOU, SEARCH_SIDE, SMOOTH, end_samples, label_ends, refine, turn_degrees,
@@ -36,7 +38,10 @@ BEYOND = np.radians(2.5)  # a frame adds a state only this far past the measured
 PAST_SHARE = 0.1          # span if more: within them the route's own states stand (a propagated mask that kept an
 #                           old shape fits an old angle well), and a frame just past them gains little and may be a
 #                           mask running ahead of the part
+FIT_FRAMES = 24      # registered frames, evenly spread, the leaf's size is refined on
 MIN_BEYOND = 3       # ... and only where this many frames do (one frame past the end is a stray mask)
+ASK = 3              # frames a person is asked to draw the part on, at most, where an end is the labels' guess, ...
+TOWARD = 0.5         # ... among those no route measured next to a frame measured in this share of the span nearest it
 GAP = 6              # a frame joins the measured ones through neighbours at most this many frames apart ...
 FASTER = 2.0         # ... turning at most this many times as fast as between neighbouring measured frames
 
@@ -81,11 +86,70 @@ def rest_offset(sil: Silhouettes, leaf: Leaf, size: np.ndarray, frames: list[int
     return theta, best
 
 
+def fit_measured(sil: Silhouettes, leaf: Leaf, size: np.ndarray, theta: float, frames: list[int], rel: np.ndarray
+                 ) -> tuple[np.ndarray, float, float]:
+    """(size, offset, overlap): the leaf's size and its angle at state 0 refined together so the registered `frames`,
+    each at its measured angle `rel` from there, overlap their masks most on average. Why: a size fitted to masks
+    alone leaves the free edge loose where the keyframes show the leaf closed and cut by the image border (a wider
+    leaf turned less casts the same silhouette); frames at several measured angles pin it."""
+    pick = frames if len(frames) <= FIT_FRAMES else [frames[i] for i in
+                                                     np.linspace(0, len(frames) - 1, FIT_FRAMES).round().astype(int)]
+    at_rel = dict(zip(frames, rel))
+
+    def mean(x: np.ndarray) -> float:
+        if x[0] <= 0.05 or x[2] - x[1] < 0.2:
+            return 0.0
+        at = leaf.turning(*x[:3])
+        return float(np.mean([sil.iou(at(x[3] + at_rel[i]), i) for i in pick]))
+
+    x0 = np.array([*size, theta])
+    res = minimize(lambda x: -mean(x), x0, method="Nelder-Mead",
+                   options={"xatol": 1e-3, "fatol": 1e-4, "maxiter": 150,
+                            "initial_simplex": x0 + np.diag([0.1 * size[0], 0.1, 0.1, np.radians(3), 0.0])[:, :4]})
+    return res.x[:3], float(res.x[3]), mean(res.x)
+
+
 def unmeasured(fig: dict[str, Any]) -> bool:
     """Whether an end of the motion in `fig` is the labels' guess or the measured extent with no label near it
     (`fit.end_state`): where reading the masks past the measured angles can measure it."""
     ends = fig.get("ends_from", "")
     return LABELS_LINE in ends or UNLABELLED_END in ends
+
+
+def guessed_ends(fig: dict[str, Any]) -> list[str]:
+    """The ends ('closed', 'open') of the motion in `fig` whose state is the labels' line: no route measured the
+    part there (`fit.end_state`)."""
+    parts = [p.strip() for p in fig.get("ends_from", "").split(";")]
+    return [end for end in ("closed", "open") if any(p.startswith(f"{end} end") and LABELS_LINE in p for p in parts)]
+
+
+def frames_to_draw(fig: dict[str, Any], n: int, keys: list[int], prefer: list[int]) -> list[int]:
+    """Dataset positions (at most `ASK`) where a mask a person draws would let the masks carry the motion to the end
+    its routes did not measure (`guessed_ends`): inside the runs of frames no route measured (at least `MIN_BEYOND`
+    long) next to a frame measured in the half of the span nearest that end (the part may have gone on there), the
+    masks stage's own suggestions there first (`prefer`), else each run's middle, longest run first; [] where both
+    ends were measured. Why: with the masks of a door
+    whose open side turned from every camera lost, the labels' guess scales its range (simulated doors 24-79 %
+    off); a few drawn masks there are what lets reading the masks measure it."""
+    guessed = guessed_ends(fig)
+    measured = {int(f): float(s) for f, s in fig.get("frame_states", [])}
+    if not guessed or not measured:
+        return []
+    at = np.array(sorted(measured))
+    s = np.array([measured[f] for f in at])
+    band = TOWARD * float(np.ptp(s))
+    near = set()
+    for end in guessed:  # the closed end is the states' low side, the open end their high side
+        near |= set(at[s <= s.min() + band] if end == "closed" else at[s >= s.max() - band])
+    runs = []
+    for a, b in zip([-1, *at], [*at, n]):  # the gaps between measured frames, the video's ends included
+        if b - a - 1 >= MIN_BEYOND and (a in near or b in near):
+            runs.append(list(range(a + 1, b)))
+    wanted, skip = [], set(keys)
+    for run in sorted(runs, key=len, reverse=True):
+        middle = run[len(run) // 2]
+        wanted += [f for f in prefer if f in run and f not in skip] or ([middle] if middle not in skip else [])
+    return sorted(wanted[:ASK])
 
 
 def connected(frames: np.ndarray, d: np.ndarray, pinned: np.ndarray, candidate: np.ndarray) -> np.ndarray:
@@ -143,6 +207,7 @@ def reach_hinge(views: Views, motion: Articulation, fig: dict[str, Any], frames:
     leaf = Leaf(line)
     rel = motion.range * np.array([measured[i] for i in reg])
     theta, agree = rest_offset(sil, leaf, size, reg, rel)
+    size, theta, agree = fit_measured(sil, leaf, size, theta, reg, rel)
     out: dict[str, Any] = {"reach_leaf": [round(float(v), 3) for v in size], "reach_leaf_iou": round(size_fit, 3),
                            "reach_agree_iou": round(agree, 3)}
     if agree < MIN_AGREE:

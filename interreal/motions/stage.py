@@ -78,19 +78,34 @@ def routes_text(fig: dict[str, Any]) -> str:
     return f"; the other routes: {'; '.join(said)}" if said else ""
 
 
-def ends_warnings(name: str, fig: dict[str, Any]) -> list[tuple[str, str]]:
+def ends_warnings(name: str, fig: dict[str, Any], fids: list[str] | None = None) -> list[tuple[str, str]]:
     """(text, cause) for each end of a used motion whose state the geometry alone did not give: an end with no
     label near it (taken as 0 or 1), and an end the labels' line placed short of it, where no route measured the
-    part further: its range is then the labels' guess, so the person hears which labels to check."""
+    part further: its range is then the labels' guess, so the person hears which frames to draw (`draw_frames`, by
+    their ids in `fids`) and which labels to check."""
     ends = fig.get("ends_from", "")
     out = []
     if UNLABELLED_END in ends:
         out.append((f"'{name}': {ends}: label a frame at each end to be sure", "ends-from-geometry"))
     if LABELS_LINE in ends:
         masks = f"; its masks past there: {fig['reach_reason']}" if fig.get("reach_reason") else ""
+        draw = [fids[f] if fids else str(f) for f in fig.get("draw_frames") or []]
+        ask = (f"draw its mask on frame{'s' if len(draw) > 1 else ''} {', '.join(draw)} (no route followed it there, "
+               f"next to its furthest measured frames), run `interreal masks` and `interreal motions` again, and "
+               if draw else "")
         out.append((f"'{name}': no route measured it further than the frames labelled there, so its range comes from "
-                    f"the labels ({ends}{masks}): check the labels near that end, or film the part at its ends where "
-                    f"it can be seen", "ends-from-labels"))
+                    f"the labels ({ends}{masks}): {ask}check the labels near that end, or film the part at its ends "
+                    f"where it can be seen", "ends-from-labels"))
+    return out
+
+
+def frames_asked(root: str | Path) -> list[dict[str, Any]]:
+    """The frames the last `interreal motions` run asks a person to draw a part's mask on, where an end of its
+    motion is the labels' guess: [{fid, object}] (what the annotate app lists beside its suggested frames)."""
+    out = []
+    for w in (read_report(root, "motions") or {}).get("warnings", []):
+        if isinstance(w, dict) and isinstance(w.get("draw"), list):
+            out += [{"fid": str(f), "object": str(w.get("object", ""))} for f in w["draw"]]
     return out
 
 
@@ -255,8 +270,9 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                              + ("those labels and " if cfg.trust_labels else "") + "the part's masks",
                              cause="motion-inconsistent", object=name, flagged=_flag_rows(fig, fids))
                     continue
-                for text, cause in ends_warnings(name, fig):
-                    rep.warn(text, cause=cause, object=name)
+                for text, cause in ends_warnings(name, fig, fids):
+                    draw = [fids[f] for f in fig.get("draw_frames") or []] if cause == "ends-from-labels" else []
+                    rep.warn(text, cause=cause, object=name, **({"draw": draw} if draw else {}))
                 if fig["flagged_labels"]:
                     rep.warn(f"'{name}': {len(fig['flagged_labels'])} of {len(fig['label_check'])} labels disagree "
                              f"with the {motion.kind} measured by {measured_by}, which is used"

@@ -252,6 +252,7 @@ def main() -> int:
             print(f"seed {seed}: keyframes added where the masks stage asked: {added or 'none (already there)'}")
         if args.draw_asked:  # the frames the stage asks for, drawn (with the truth), then the masks and motions again
             firsts = [run_part(ds, cap, o, "stage", args.true_masks, args.eyeballed, seed) for o in range(2)]
+            runs += [{"seed": seed, **r, "route": "before drawing"} for r in firsts]  # the same table, before and after
             asked = sorted({f for r in firsts for f in r["draw_asked"]})
             print(f"seed {seed}: frames the motions stage asked to draw: {asked or 'none'}")
             if asked:

@@ -184,6 +184,8 @@ def test_where_an_end_is_the_labels_guess_the_person_is_asked_to_draw_frames_pas
     high = {**{i: 0.8 + i / 50 for i in range(8)}, **{i: 1.0 - (i - 32) / 30 for i in range(32, 60)}}
     shut["frame_states"] = [[i, s] for i, s in high.items()]
     assert frames_to_draw(shut, 60, [], [12, 20]) == []  # the run lies between frames near the open end only
+    every = dict(fig, frame_states=[[i, min(i, 30) / 30] for i in range(60)])  # a route that read every frame
+    assert frames_to_draw(every, 60, [], [45]) == []
 
 
 def test_the_warning_names_the_frames_to_draw_and_the_annotate_app_lists_them(tmp_path):
@@ -209,3 +211,34 @@ def test_the_warning_names_the_frames_to_draw_and_the_annotate_app_lists_them(tm
     assert frames_asked(tmp_path) == [{"fid": f, "object": "door"} for f in ("00012", "00020", "00031")]
     listed = [s for s in DatasetStore(tmp_path).suggested() if "draw 'door'" in s["reason"]]
     assert [s["fid"] for s in listed] == ["00012", "00020"] and "labels' guess" in listed[0]["reason"]
+
+
+def test_the_motions_report_asks_for_the_frames_to_draw_whether_the_motion_is_used_or_refused(tmp_path, monkeypatch):
+    """`interreal motions` on a dataset whose part's open end only the labels scale: the warning (used: the range
+    rests on the labels; refused: the labels' line made it turn too far) names the frames the route asked for and
+    the report holds them as `draw`, which the annotate app lists."""
+    import json
+
+    from conftest import make_tiny_dataset
+
+    from interreal.motions import estimate_motions, frames_asked
+    from interreal.motions import part as motions
+
+    ds = make_tiny_dataset(tmp_path / "ds", n_frames=12, size=(64, 48), n_objects=1)
+    for accepted in (True, False):
+        def measured(pc, ds_, names, part, states, known, cfg, step, labelled=None, obj=None, accepted=accepted):
+            fig = {"route": "sfm", "registered": 6, "accepted": accepted, "flagged_labels": [], "label_check": [],
+                   "reason": "" if accepted else "its range comes to 185 deg, more than a door turns",
+                   "frame_states": [[i, i / 10] for i in (0, 1, 2, 9, 10, 11)], "routes": {},
+                   "ends_from": f"closed end 0: labelled; open end 0.4: {LABELS_LINE} (no label says 1)",
+                   "draw_frames": [4, 6]}
+            return Articulation("hinge", np.array([0.0, 0.0, 1.0]), np.zeros(3), 1.0), fig
+
+        monkeypatch.setattr(motions, "measure_part", measured)
+        estimate_motions(ds, min_pixels=10, min_registered=2, erode=0, force=True)
+        warned = [w for w in json.loads((ds / "reports" / "motions.json").read_text())["warnings"] if w.get("draw")]
+        ids = [f.name.split("_")[-1].split(".")[0] for f in sorted((ds / "images").iterdir())]
+        assert len(warned) == 1 and warned[0]["draw"] == [ids[4], ids[6]], warned
+        assert f"draw its mask on frames {ids[4]}, {ids[6]}" in warned[0]["message"]
+        assert warned[0]["cause"] == ("ends-from-labels" if accepted else "motion-inconsistent")
+        assert [a["fid"] for a in frames_asked(ds)] == [ids[4], ids[6]]

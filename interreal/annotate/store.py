@@ -245,7 +245,7 @@ class DatasetStore:
             return []
         have = {fid_of_index(i) for i in self._frames}
         return [{"fid": a["fid"], "reason": f"draw '{a['object']}' here: no route followed it to this end of its "
-                                            f"motion, so its range is the labels' guess"}
+                                            f"motion, so only the labels' guess scales it there"}
                 for a in asks if a["fid"] in have]
 
     def _label_flags(self) -> list[dict[str, Any]]:

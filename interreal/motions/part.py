@@ -267,7 +267,7 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
         step("the masks past its measured angles")
         views = views_of(ds, obj) if views is None else views
         best = reached(views, best, ds, obj, states, known, labelled, cfg)
-    if obj is not None and best[0] is not None and best[1]["accepted"]:  # an end the labels' guess: frames to draw
+    if obj is not None and best[0] is not None:  # where an end is the labels' guess (used or not): frames to draw
         best[1]["draw_frames"] = frames_to_draw(best[1], len(ds.frames), keyframe_positions(ds),
                                                 suggested_positions(ds))
     best[1]["attempts"] = attempts  # the reconstructions tried, whichever route's figures these are

@@ -128,8 +128,8 @@ def frames_to_draw(fig: dict[str, Any], n: int, keys: list[int], prefer: list[in
     its routes did not measure (`guessed_ends`): inside the runs of frames no route measured (at least `MIN_BEYOND`
     long) next to a frame measured in the half of the span nearest that end (the part may have gone on there), the
     masks stage's own suggestions there first (`prefer`), else each run's middle, longest run first; [] where both
-    ends were measured. Why: with the masks of a door
-    whose open side turned from every camera lost, the labels' guess scales its range (simulated doors 24-79 %
+    ends were measured or no such run is left (a route that read every frame from its masks). Why: with the masks of
+    a door whose open side turned from every camera lost, the labels' guess scales its range (simulated doors 24-79 %
     off); a few drawn masks there are what lets reading the masks measure it."""
     guessed = guessed_ends(fig)
     measured = {int(f): float(s) for f, s in fig.get("frame_states", [])}
@@ -141,10 +141,8 @@ def frames_to_draw(fig: dict[str, Any], n: int, keys: list[int], prefer: list[in
     near = set()
     for end in guessed:  # the closed end is the states' low side, the open end their high side
         near |= set(at[s <= s.min() + band] if end == "closed" else at[s >= s.max() - band])
-    runs = []
-    for a, b in zip([-1, *at], [*at, n]):  # the gaps between measured frames, the video's ends included
-        if b - a - 1 >= MIN_BEYOND and (a in near or b in near):
-            runs.append(list(range(a + 1, b)))
+    runs = [list(range(a + 1, b)) for a, b in zip([-1, *at], [*at, n])  # the gaps, the video's ends included
+            if b - a - 1 >= MIN_BEYOND and (a in near or b in near)]
     wanted, skip = [], set(keys)
     for run in sorted(runs, key=len, reverse=True):
         middle = run[len(run) // 2]

@@ -89,14 +89,22 @@ def ends_warnings(name: str, fig: dict[str, Any], fids: list[str] | None = None)
         out.append((f"'{name}': {ends}: label a frame at each end to be sure", "ends-from-geometry"))
     if LABELS_LINE in ends:
         masks = f"; its masks past there: {fig['reach_reason']}" if fig.get("reach_reason") else ""
-        draw = [fids[f] if fids else str(f) for f in fig.get("draw_frames") or []]
-        ask = (f"draw its mask on frame{'s' if len(draw) > 1 else ''} {', '.join(draw)} (no route followed it there, "
-               f"next to its furthest measured frames), run `interreal masks` and `interreal motions` again, and "
-               if draw else "")
+        ask, _ = draw_ask(fig, fids)
         out.append((f"'{name}': no route measured it further than the frames labelled there, so its range comes from "
-                    f"the labels ({ends}{masks}): {ask}check the labels near that end, or film the part at its ends "
-                    f"where it can be seen", "ends-from-labels"))
+                    f"the labels ({ends}{masks}): {ask + ', and ' if ask else ''}check the labels near that end, or "
+                    f"film the part at its ends where it can be seen", "ends-from-labels"))
     return out
+
+
+def draw_ask(fig: dict[str, Any], fids: list[str] | None) -> tuple[str, list[str]]:
+    """(words, frame ids) asking a person to draw the part on `fig`'s `draw_frames` (where an end of its motion is
+    the labels' guess and the masks lost it), or ('', [])."""
+    draw = [fids[f] if fids else str(f) for f in fig.get("draw_frames") or []]
+    if not draw:
+        return "", []
+    return (f"draw its mask on frame{'s' if len(draw) > 1 else ''} {', '.join(draw)} (no route followed it there, "
+            f"next to its furthest measured frames; `interreal annotate` lists them), run `interreal masks` and "
+            f"`interreal motions` again"), draw
 
 
 def frames_asked(root: str | Path) -> list[dict[str, Any]]:
@@ -265,13 +273,16 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                 motion.extra["frame_states"] = {fids[f]: m for f, m in fig.get("frame_states", [])}
                 measured_by = f"{fig.get('route', '?')} ({fig['registered']} of the {shown} frames it shows in)"
                 if not fig["accepted"]:
+                    ask, draw = draw_ask(fig, fids)
                     rep.warn(f"'{name}': the {motion.kind} measured by {measured_by} is not used: {fig['reason']}; "
-                             f"{disagreement_text(fig.get('label_check', []), fids)}{routes_text(fig)}; check "
+                             f"{disagreement_text(fig.get('label_check', []), fids)}{routes_text(fig)}; "
+                             + (f"{ask}; " if ask else "") + "check "
                              + ("those labels and " if cfg.trust_labels else "") + "the part's masks",
-                             cause="motion-inconsistent", object=name, flagged=_flag_rows(fig, fids))
+                             cause="motion-inconsistent", object=name, flagged=_flag_rows(fig, fids),
+                             **({"draw": draw} if draw else {}))
                     continue
                 for text, cause in ends_warnings(name, fig, fids):
-                    draw = [fids[f] for f in fig.get("draw_frames") or []] if cause == "ends-from-labels" else []
+                    draw = draw_ask(fig, fids)[1] if cause == "ends-from-labels" else []
                     rep.warn(text, cause=cause, object=name, **({"draw": draw} if draw else {}))
                 if fig["flagged_labels"]:
                     rep.warn(f"'{name}': {len(fig['flagged_labels'])} of {len(fig['label_check'])} labels disagree "

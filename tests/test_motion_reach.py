@@ -186,6 +186,12 @@ def test_where_an_end_is_the_labels_guess_the_person_is_asked_to_draw_frames_pas
     assert frames_to_draw(shut, 60, [], [12, 20]) == []  # the run lies between frames near the open end only
     every = dict(fig, frame_states=[[i, min(i, 30) / 30] for i in range(60)])  # a route that read every frame
     assert frames_to_draw(every, 60, [], [45]) == []
+    # the masks lost the door over its whole opening (frames 8-53): it was measured only closed before, and from
+    # part way on its way back; a gap between two frames resting closed (the masks lost it there, at rest) is no ask
+    back = {**{i: 0.0 for i in range(8)}, **{i: min(1.0, (i - 50) / 6) for i in range(54, 62)},
+            **{i: max(0.0, 1.0 - (i - 62) / 6) for i in range(62, 70)}, **{i: 0.0 for i in (70, 71, 80, 81)}}
+    lost = dict(fig, frame_states=[[i, s] for i, s in back.items()])
+    assert frames_to_draw(lost, 82, [], []) == [31]  # the opening's middle; not 75, between closed frames
 
 
 def test_the_warning_names_the_frames_to_draw_and_the_annotate_app_lists_them(tmp_path):

@@ -41,7 +41,8 @@ PAST_SHARE = 0.1          # span if more: within them the route's own states sta
 FIT_FRAMES = 24      # registered frames, evenly spread, the leaf's size is refined on
 MIN_BEYOND = 3       # ... and only where this many frames do (one frame past the end is a stray mask)
 ASK = 3              # frames a person is asked to draw the part on, at most, where an end is the labels' guess, ...
-TOWARD = 0.5         # ... among those no route measured next to a frame measured in this share of the span nearest it
+AWAY = 0.1           # ... among those no route measured, unless every neighbour rests within this share of the span
+#                      of the other end (the masks lost it there, not on its way to the end)
 GAP = 6              # a frame joins the measured ones through neighbours at most this many frames apart ...
 FASTER = 2.0         # ... turning at most this many times as fast as between neighbouring measured frames
 
@@ -126,8 +127,8 @@ def guessed_ends(fig: dict[str, Any]) -> list[str]:
 def frames_to_draw(fig: dict[str, Any], n: int, keys: list[int], prefer: list[int]) -> list[int]:
     """Dataset positions (at most `ASK`) where a mask a person draws would let the masks carry the motion to the end
     its routes did not measure (`guessed_ends`): inside the runs of frames no route measured (at least `MIN_BEYOND`
-    long) next to a frame measured in the half of the span nearest that end (the part may have gone on there), the
-    masks stage's own suggestions there first (`prefer`), else each run's middle, longest run first; [] where both
+    long) but those between frames resting at the other end (`AWAY`; the part may have gone on to the end in any
+    other), the masks stage's own suggestions there first (`prefer`), else each run's middle, longest run first; [] where both
     ends were measured or no such run is left (a route that read every frame from its masks). Why: with the masks of
     a door whose open side turned from every camera lost, the labels' guess scales its range (simulated doors 24-79 %
     off); a few drawn masks there are what lets reading the masks measure it."""
@@ -137,12 +138,12 @@ def frames_to_draw(fig: dict[str, Any], n: int, keys: list[int], prefer: list[in
         return []
     at = np.array(sorted(measured))
     s = np.array([measured[f] for f in at])
-    band = TOWARD * float(np.ptp(s))
-    near = set()
-    for end in guessed:  # the closed end is the states' low side, the open end their high side
-        near |= set(at[s <= s.min() + band] if end == "closed" else at[s >= s.max() - band])
-    runs = [list(range(a + 1, b)) for a, b in zip([-1, *at], [*at, n])  # the gaps, the video's ends included
-            if b - a - 1 >= MIN_BEYOND and (a in near or b in near)]
+    band = AWAY * float(np.ptp(s))
+    far: set[int] = set(at.tolist())
+    for end in guessed:  # the frames resting at the other end (the closed end is the states' low side)
+        far &= set((at[s >= s.max() - band] if end == "closed" else at[s <= s.min() + band]).tolist())
+    runs = [list(range(a + 1, b)) for a, b in zip([-1, *at.tolist()], [*at.tolist(), n])  # the video's ends too
+            if b - a - 1 >= MIN_BEYOND and any(0 <= x < n and x not in far for x in (a, b))]
     wanted, skip = [], set(keys)
     for run in sorted(runs, key=len, reverse=True):
         middle = run[len(run) // 2]

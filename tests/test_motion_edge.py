@@ -233,3 +233,22 @@ def test_crest_climbs_to_the_top_between_grid_points_and_past_a_near_tie():
         values = np.array([overlap(a) for a in grid])
         top, at = crest(overlap, grid, values)
         assert abs(np.degrees(at) - 23.3) < 0.3 and top == pytest.approx(0.99, abs=1e-4), (shift, np.degrees(at))
+
+
+def test_a_leaf_is_fitted_on_the_cheapest_line_of_each_direction_the_cheapest_few_leave_out():
+    """Two closed keyframes keep every edge of a closed door in place: its top and bottom edges, seen from each, can
+    be the four cheapest static lines, the hinge fifth. A leaf is fitted on the cheapest line of each direction they
+    leave out too; lines that all share a direction give the cheapest few as before."""
+    from interreal.motions.edge import LINES, OTHER_DIRECTIONS, candidate_lines
+
+    def line(direction, cost, at=(0.0, 0.0, 0.0)):
+        p = np.array(at, float)
+        return Line(p, p + np.array(direction, float), cost, 0)
+
+    flat = [line((1, 0, 0), 0.5), line((1, 0.02, 0), 0.6), line((1, 0, 0), 0.7, (0, 1, 0)), line((1, 0, 0.1), 0.8)]
+    hinge, other, again = line((0, 0, 1), 1.2), line((0, 1, 0), 1.3), line((0, 0.05, 1), 1.4, (1, 0, 0))
+    assert candidate_lines(flat + [hinge, again]) == flat + [hinge]  # the hinge's direction once, its cheapest line
+    assert candidate_lines(flat + [hinge, other, line((1, 1, 0), 1.5)]) == flat + [hinge, other]  # at most 2 more
+    assert len(candidate_lines(flat + [hinge, other])) == LINES + OTHER_DIRECTIONS
+    upright = [line((0, 0, 1), 0.5 + i / 10, (i, 0, 0)) for i in range(7)]
+    assert candidate_lines(upright) == upright[:LINES]  # one direction: the cheapest few, as before

@@ -63,6 +63,10 @@ SLIDE_MARGIN = 0.05   # ... and overlapping those masks this much more than the 
 REFINE_MARGIN = 0.05  # the lines whose thin leaf fits within this of the best one's are refined (at most
 REFINED = 2           # this many), the best refined kept: refining gains 0.03-0.05 in overlap, so a line a few cm
 #                       off the hinge can trail a wrong one (the door's free edge) until both are refined
+LINES = 4             # the cheapest static lines a leaf is fitted on, and at most OTHER_DIRECTIONS more: the
+OTHER_DIRECTIONS = 2  # cheapest of each direction they leave out (APART_DEG or more from each): between two closed
+APART_DEG = 30.0      # keyframes every edge of a closed door stays put, and its top and bottom edges, seen from each,
+#                       can take every slot (simulated plain seed 1: the hinge 5th, 1.16 px against 0.5-1.1)
 KEY_WEIGHT = 5.0      # a keyframe's overlap counts this many frames' in the dynamic programming
 MIN_CONFIDENCE = 0.5  # frames whose mask the masks stage trusts less than this are left out (a plain door's mask
 #                       leaves it within a few frames of a keyframe, and the stage knows: 0.07-0.3 there)
@@ -436,6 +440,25 @@ def trusted_frames(views: Views, keys: list[int], min_pixels: int, confidence: n
     return [i for i, m in enumerate(views.masks) if trusted[i] and int(m.sum()) >= min_pixels]
 
 
+def candidate_lines(lines: list[Line]) -> list[Line]:
+    """The `LINES` cheapest of `lines` (cheapest first) and, after them, the cheapest line of each direction they
+    leave out (at most `OTHER_DIRECTIONS`): a cost that every edge of a closed door shares says nothing of which edge
+    turns, the leaf fitted on each does."""
+    picked = list(lines[:LINES])
+    for ln in lines[LINES:]:
+        if len(picked) >= LINES + OTHER_DIRECTIONS:
+            break
+        if all(_angle_deg(ln, other) >= APART_DEG for other in picked):
+            picked.append(ln)
+    return picked
+
+
+def _angle_deg(a: Line, b: Line) -> float:
+    """The angle between two lines' directions, 0-90 deg."""
+    u, v = a.q - a.p, b.q - b.p
+    return float(np.degrees(np.arccos(min(1.0, abs(u @ v) / (np.linalg.norm(u) * np.linalg.norm(v) + 1e-12)))))
+
+
 def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.ndarray | None = None,
                 known: np.ndarray | None = None) -> tuple[Fit | None, dict[str, Any]]:
     """The hinge about the best static outline line, as a `Fit` over `frames` (the angle per frame), or None and
@@ -457,7 +480,8 @@ def edge_motion(views: Views, frames: list[int], keys: list[int], states: np.nda
     shown = [i for i in frames if i in sil.crop]
     still, (closed, opened) = label_ends(shown, states, known)
     ends = end_samples(shown, [closed, opened])
-    fits = sorted(((ln, *fit_leaf(coarse, ln, shown, keys, ends)) for ln in lines[:4]), key=lambda r: -r[2])
+    fits = sorted(((ln, *fit_leaf(coarse, ln, shown, keys, ends)) for ln in candidate_lines(lines)),
+                  key=lambda r: -r[2])
     line, size, thickness, _ = max((refine_leaf(coarse, ln, sz, shown, keys) for ln, sz, fit in fits[:REFINED]
                                     if fit >= fits[0][2] - REFINE_MARGIN), key=lambda r: r[3])
     leaf = Leaf(line, thickness)

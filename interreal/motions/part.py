@@ -30,7 +30,7 @@ from .known import known_camera_motion
 from .pnp import pnp_views, reference_frames
 from .edge import measure_edge, trusted_frames
 from .prism import measure_prism
-from .reach import frames_to_draw, reach_hinge, unmeasured
+from .reach import frames_to_draw, guessed_ends, reach_hinge, unmeasured
 from .silhouette import Views, measure_silhouettes, views_of
 
 # MotionConfig.route: the route tried first; the others follow, in this order, while no motion is accepted
@@ -267,7 +267,8 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
         step("the masks past its measured angles")
         views = views_of(ds, obj) if views is None else views
         best = reached(views, best, ds, obj, states, known, labelled, cfg)
-    if obj is not None and best[0] is not None:  # where an end is the labels' guess (used or not): frames to draw
+    # where an end is the labels' guess, the frames a person is asked to draw (the reports are read only then)
+    if obj is not None and best[0] is not None and guessed_ends(best[1]):
         best[1]["draw_frames"] = frames_to_draw(best[1], len(ds.frames), keyframe_positions(ds),
                                                 suggested_positions(ds))
     best[1]["attempts"] = attempts  # the reconstructions tried, whichever route's figures these are

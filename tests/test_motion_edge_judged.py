@@ -14,6 +14,20 @@ def test_a_drawer_gets_no_hinge_from_its_static_edges():
     ds, truth, st, kn, labelled, _ = capture("slide")
     motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)
     assert motion is None or not fig["accepted"] or motion.kind != "hinge", fig
+    # refused by the slide rival: the frames where a drawn mask would decide are ones it moved in, no keyframe
+    assert "a slide of its front explains" in fig["edge_reason"]
+    assert 1 <= len(fig["edge_decide"]) <= 3 and not set(fig["edge_decide"]) & set(KEYS), fig["edge_decide"]
+    assert all(truth[i] > 0.1 for i in fig["edge_decide"]), truth[fig["edge_decide"]]
+
+
+def test_the_frames_that_decide_are_spread_over_those_it_moved_in_and_skip_the_keyframes():
+    from interreal.motions.edge import ASK, deciding_frames
+
+    moved = list(range(20, 50))
+    picked = deciding_frames(moved, keys=[25, 35])
+    assert len(picked) == ASK and not {25, 35} & set(picked) and picked == sorted(picked)
+    assert picked[0] < 30 and picked[-1] > 40  # spread from its first turns to its last
+    assert deciding_frames([3, 4], keys=[3, 4]) == [] and deciding_frames([7], keys=[]) == [7]
 
 
 @pytest.mark.parametrize("kind", ["hinge", "slide"])

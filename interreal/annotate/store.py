@@ -238,14 +238,14 @@ class DatasetStore:
         return self._label_flags() + self._draw_asks() + _fine_part_flags(rep, figures) + out
 
     def _draw_asks(self) -> list[dict[str, Any]]:
-        """Frames the motions report asks a part's mask on: an end of its motion is the labels' guess there."""
+        """Frames the motions report asks a part's mask on (an end of its motion is the labels' guess there, or a
+        drawn mask decides what moves it), with its words why."""
         try:
             asks = frames_asked(self.ds)
         except (OSError, ValueError):
             return []
         have = {fid_of_index(i) for i in self._frames}
-        return [{"fid": a["fid"], "reason": f"draw '{a['object']}' here: no route followed it to this end of its "
-                                            f"motion, so only the labels' guess scales it there"}
+        return [{"fid": a["fid"], "reason": f"draw '{a['object']}' here: {a['why']}"}
                 for a in asks if a["fid"] in have]
 
     def _label_flags(self) -> list[dict[str, Any]]:

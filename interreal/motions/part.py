@@ -29,7 +29,7 @@ from .fit import PartViews, fit_motion, part_point
 from .known import known_camera_motion
 from .pnp import pnp_views, reference_frames
 from .edge import measure_edge, trusted_frames
-from .prism import measure_prism
+from .prism import contested_slide, measure_prism
 from .reach import frames_to_draw, guessed_ends, reach_hinge, unmeasured
 from .silhouette import Views, measure_silhouettes, views_of
 
@@ -40,6 +40,10 @@ OUTLINE_ROUTES = {"edge": ("static edge", measure_edge), "prism": ("front pulled
 POSE_ROUTES = ("sfm", "pnp")  # the routes that measure the part's pose, only in the frames they register: a hinge
 #                               they give is carried by the masks past its measured angles (`reached`)
 PNP_LONG_SIDE = 800  # the PnP route reads the images at most this large
+DRAW_WHY = {  # why a person is asked to draw a part's mask on some frames (`draw_frames`), in the warning's words
+    "end": "no route followed it to this end of its motion, so only the labels' guess scales it there",
+    "decide": "where it moves a slide of its front and a leaf turning on its edge explain its masks alike: a drawn "
+              "mask there decides"}
 RESULT_FILE = "measured.json"  # DS/motions/object_<k>/: the part's finished measurement (`save_result`)
 
 
@@ -226,6 +230,8 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
     tried: dict[str, dict[str, Any]] = {}
     attempts = 0
     views: Views | None = None  # the part's masks, cameras and occluders, read once for the pose-free routes
+    decide: list[int] = []  # frames a drawn mask would decide between two models a route could not tell apart
+    edge_fig: dict[str, Any] = {}  # the edge route's figures: its leaf against a slide, which the prism route heeds
     for route in order:
         if best[0] is not None and best[1]["accepted"]:
             break
@@ -251,6 +257,10 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
         else:
             motion, fig = _measure_part_sfm(pc, ds, names, part, states, known, labelled, cfg, step, start)
         fig.setdefault("route", route)
+        decide = decide or fig.get(f"{route}_decide") or []
+        edge_fig = fig if route == "edge" else edge_fig
+        if route == "prism" and fig.get("accepted") and (why := contested_slide(edge_fig)):
+            fig.update(accepted=False, reason=why)
         tried[route] = {"registered": fig.get("registered", 0), "kind": None if motion is None else motion.kind,
                         "accepted": bool(fig.get("accepted")),
                         "reason": fig.get("reason") or fig.get(f"{route}_reason")
@@ -271,6 +281,9 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
     if obj is not None and best[0] is not None and guessed_ends(best[1]):
         best[1]["draw_frames"] = frames_to_draw(best[1], len(ds.frames), keyframe_positions(ds),
                                                 suggested_positions(ds))
+        best[1]["draw_why"] = DRAW_WHY["end"]
+    elif decide and not (best[0] is not None and best[1]["accepted"]):
+        best[1].update(draw_frames=decide, draw_why=DRAW_WHY["decide"])
     best[1]["attempts"] = attempts  # the reconstructions tried, whichever route's figures these are
     best[1]["routes"] = tried
     best[1].update({f"{r}_registered": v["registered"] for r, v in tried.items()})

@@ -228,6 +228,19 @@ def prism_motion(views: Views, frames: list[int], keys: list[int], states: np.nd
                ok, np.full(len(frames), step), 1.0, {}), fig
 
 
+def contested_slide(edge_fig: dict[str, Any]) -> str | None:
+    """Why a slide the prism route measured is not used, or None: the edge route's refined leaf explained the frames
+    it turned in better than a slide of its front on both counts (outline and overlap), if not by its margins (so it
+    was refused too). The prism's own rival, an unrefined leaf, can lose where the refined one wins: a plain door
+    with three frames of it drawn open was made a drawer 89 deg off so (simulated, `--hard` seed 6)."""
+    if not edge_fig.get("edge_contested"):
+        return None
+    return (f"the edge route's leaf explains the frames it turned in better than a slide of its front (outline "
+            f"{edge_fig.get('edge_outline_px')} px against {edge_fig.get('edge_slide_outline_px')}, overlap "
+            f"{edge_fig.get('edge_hinge_iou')} against {edge_fig.get('edge_slide_iou')}), if not by its margins: "
+            f"a door or a drawer, the masks do not tell")
+
+
 def measure_prism(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: np.ndarray, keys: list[int],
                   min_pixels: int = 400, trust_labels: bool = False, confidence: np.ndarray | None = None,
                   views: Views | None = None) -> tuple[Articulation | None, dict[str, Any]]:

@@ -48,8 +48,8 @@ from ..options import add_flags, config_from, values_from_args
 from ..report import StageReport, finished_with, fingerprint, read_report, warning_lines
 from ..sfm import colmap
 from .fit import FLAG_TOL, LABELS_LINE, UNLABELLED_END, PartViews, fit_motion
-from .part import (ROUTES, MotionConfig, ObjectResult, measure_object, measure_object_at, measure_part, part_dir,
-                   saved_result)
+from .part import (DRAW_WHY, ROUTES, MotionConfig, ObjectResult, measure_object, measure_object_at, measure_part,
+                   part_dir, saved_result)
 
 __all__ = ["PartViews", "fit_motion", "estimate_motions", "measure_part", "MotionConfig"]
 
@@ -102,18 +102,30 @@ def draw_ask(fig: dict[str, Any], fids: list[str] | None) -> tuple[str, list[str
     draw = [fids[f] if fids else str(f) for f in fig.get("draw_frames") or []]
     if not draw:
         return "", []
-    return (f"draw its mask on frame{'s' if len(draw) > 1 else ''} {', '.join(draw)} (no route followed it there, "
-            f"next to its furthest measured frames; `interreal annotate` lists them), run `interreal masks` and "
-            f"`interreal motions` again"), draw
+    return (f"draw its mask on frame{'s' if len(draw) > 1 else ''} {', '.join(draw)} ({draw_why(fig)}; "
+            f"`interreal annotate` lists them), run `interreal masks` and `interreal motions` again"), draw
+
+
+def draw_why(fig: dict[str, Any]) -> str:
+    """Why `fig`'s `draw_frames` are asked for, in words (an end the labels' guess scales, unless it says)."""
+    return str(fig.get("draw_why") or DRAW_WHY["end"])
+
+
+def draw_fields(fig: dict[str, Any], fids: list[str]) -> dict[str, Any]:
+    """The warning's fields naming the frames to draw and why (`frames_asked` reads them), or none."""
+    draw = draw_ask(fig, fids)[1]
+    return {"draw": draw, "draw_why": draw_why(fig)} if draw else {}
 
 
 def frames_asked(root: str | Path) -> list[dict[str, Any]]:
-    """The frames the last `interreal motions` run asks a person to draw a part's mask on, where an end of its
-    motion is the labels' guess: [{fid, object}] (what the annotate app lists beside its suggested frames)."""
+    """The frames the last `interreal motions` run asks a person to draw a part's mask on (where an end of its
+    motion is the labels' guess, or where a drawn mask decides between two models): [{fid, object, why}] (what the
+    annotate app lists beside its suggested frames)."""
     out = []
     for w in (read_report(root, "motions") or {}).get("warnings", []):
         if isinstance(w, dict) and isinstance(w.get("draw"), list):
-            out += [{"fid": str(f), "object": str(w.get("object", ""))} for f in w["draw"]]
+            why = str(w.get("draw_why") or DRAW_WHY["end"])
+            out += [{"fid": str(f), "object": str(w.get("object", "")), "why": why} for f in w["draw"]]
     return out
 
 
@@ -260,10 +272,12 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                 fids = [f.fid for f in ds.frames]
                 st.update({k: v if not isinstance(v, float) or np.isfinite(v) else None for k, v in fig.items()})
                 if motion is None:
+                    ask = draw_ask(fig, fids)[0]
                     rep.warn(f"'{name}': no route measured a motion in the {shown} frames it shows in: "
                              + "; ".join(f"{r}: {v['reason']}" for r, v in fig.get("routes", {}).items())
-                             + "; label more frames where it moves, or film it with more texture in view",
-                             cause="motion-unregistered", object=name)
+                             + (f"; {ask}" if ask else "; label more frames where it moves, or film it with more "
+                                                       "texture in view"),
+                             cause="motion-unregistered", object=name, **draw_fields(fig, fids))
                     continue
                 st["kind"] = motion.kind
                 st["frame_states"] = frame_state_rows(fig, fids, labels[:, o], given[:, o])
@@ -273,17 +287,17 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                 motion.extra["frame_states"] = {fids[f]: m for f, m in fig.get("frame_states", [])}
                 measured_by = f"{fig.get('route', '?')} ({fig['registered']} of the {shown} frames it shows in)"
                 if not fig["accepted"]:
-                    ask, draw = draw_ask(fig, fids)
+                    ask = draw_ask(fig, fids)[0]
                     rep.warn(f"'{name}': the {motion.kind} measured by {measured_by} is not used: {fig['reason']}; "
                              f"{disagreement_text(fig.get('label_check', []), fids)}{routes_text(fig)}; "
                              + (f"{ask}; " if ask else "") + "check "
                              + ("those labels and " if cfg.trust_labels else "") + "the part's masks",
                              cause="motion-inconsistent", object=name, flagged=_flag_rows(fig, fids),
-                             **({"draw": draw} if draw else {}))
+                             **draw_fields(fig, fids))
                     continue
                 for text, cause in ends_warnings(name, fig, fids):
-                    draw = draw_ask(fig, fids)[1] if cause == "ends-from-labels" else []
-                    rep.warn(text, cause=cause, object=name, **({"draw": draw} if draw else {}))
+                    rep.warn(text, cause=cause, object=name,
+                             **(draw_fields(fig, fids) if cause == "ends-from-labels" else {}))
                 if fig["flagged_labels"]:
                     rep.warn(f"'{name}': {len(fig['flagged_labels'])} of {len(fig['label_check'])} labels disagree "
                              f"with the {motion.kind} measured by {measured_by}, which is used"

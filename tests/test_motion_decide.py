@@ -73,3 +73,15 @@ def test_a_slide_is_not_used_where_the_edge_routes_leaf_explained_the_masks_bett
         assert fig["routes"]["prism"]["accepted"] is False
     else:
         assert "draw_frames" not in fig
+
+
+def test_the_summary_line_ends_cleanly_when_no_object_was_measured(tmp_path, monkeypatch, capsys):
+    import argparse
+
+    from interreal.motions import stage
+
+    monkeypatch.setattr(stage, "estimate_motions", lambda ds, force=False, **kw: {"measured": 0, "total": 2,
+                                                                                  "objects": {}, "parts": {}})
+    monkeypatch.setattr(stage, "values_from_args", lambda cls, args: {})
+    stage.main(argparse.Namespace(dataset=tmp_path, force=False))
+    assert capsys.readouterr().out.strip().splitlines()[-1] == "motions: 0 of 2 objects measured"

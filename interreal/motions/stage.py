@@ -358,8 +358,8 @@ def main(args) -> int:
     print(f"motions: {fig['measured']} of {fig['total']} objects measured"
           + (" (reused: same inputs and settings)" if fig.get("reused") else "")
           + (f" ({resumed} part(s) read back from the run that was stopped)" if resumed and not fig.get("reused")
-             else "") + ": "
-          + ", ".join(f"{n} ({k})" for n, k in fig["objects"].items()))
+             else "")
+          + (": " + ", ".join(f"{n} ({k})" for n, k in fig["objects"].items()) if fig["objects"] else ""))
     for name, part in (fig.get("parts") or {}).items():
         print("  " + part_line(name, part))
     return 0

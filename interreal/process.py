@@ -16,7 +16,7 @@ from .conventions import frame_index
 from .errors import InputError
 from .frames import FramesConfig, extract_frames, frames_options
 from .masks.config import MasksConfig
-from .motions import estimate_motions, part_line
+from .motions import estimate_motions, measured_line
 from .options import add_flags, options_of, values_from_args
 from .labels import add_unit_arguments, import_labels, parse_range, read_label_file
 from .labels.prompts import find_prompts, import_prompts, read_prompt_file
@@ -172,11 +172,7 @@ def stage_summary(ds: Path, stage: str) -> str | None:
                 + (f" for {', '.join(f['objects'])}" if f.get("objects") else "")
                 + (f", {len(f['skipped_frames'])} rows skipped" if f.get("skipped_frames") else ""))
     if stage == "motions":
-        objs = f.get("objects") or {}
-        parts = f.get("parts") or {}
-        return (f"motions: {f.get('measured', 0)} of {f.get('total', '?')} objects measured"
-                + (": " + ", ".join(f"{n} ({k})" for n, k in objs.items()) if objs else "")
-                + "".join(f"\n  {part_line(n, p)}" for n, p in parts.items()))
+        return measured_line(f)
     return None
 
 

@@ -17,9 +17,9 @@ A new route is a module here that returns what `fit.articulate` reads.
 
 from .fit import PartViews, fit_motion
 from .part import MotionConfig, PartMasks, measure_part, part_masks, part_pairs
-from .stage import (add_arguments, estimate_motions, flagged_labels, frame_state_rows, frames_asked, main, part_line,
-                    part_summary, routes_text)
+from .stage import (add_arguments, estimate_motions, flagged_labels, frame_state_rows, frames_asked, main,
+                    measured_line, part_line, part_summary, routes_text)
 
 __all__ = ["MotionConfig", "PartMasks", "PartViews", "add_arguments", "estimate_motions", "fit_motion",
-           "flagged_labels", "frame_state_rows", "frames_asked", "main", "measure_part", "part_line", "part_masks",
-           "part_pairs", "part_summary", "routes_text"]
+           "flagged_labels", "frame_state_rows", "frames_asked", "main", "measure_part", "measured_line", "part_line",
+           "part_masks", "part_pairs", "part_summary", "routes_text"]

@@ -67,7 +67,7 @@ LINES = 4             # the cheapest static lines a leaf is fitted on, and at mo
 OTHER_DIRECTIONS = 2  # cheapest of each direction they leave out (APART_DEG or more from each): between two closed
 APART_DEG = 30.0      # keyframes every edge of a closed door stays put, and its top and bottom edges, seen from each,
 #                       can take every slot (simulated plain seed 1: the hinge 5th, 1.16 px against 0.5-1.1)
-ASK = 3               # frames a person is asked to draw where a slide and a leaf explain the masks alike
+ASK = 3               # frames a person is asked to draw at most (here where a slide and a leaf tie; `reach`)
 KEY_WEIGHT = 5.0      # a keyframe's overlap counts this many frames' in the dynamic programming
 MIN_CONFIDENCE = 0.5  # frames whose mask the masks stage trusts less than this are left out (a plain door's mask
 #                       leaves it within a few frames of a keyframe, and the stage knows: 0.07-0.3 there)

@@ -230,8 +230,8 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
     tried: dict[str, dict[str, Any]] = {}
     attempts = 0
     views: Views | None = None  # the part's masks, cameras and occluders, read once for the pose-free routes
-    decide: list[int] = []  # frames a drawn mask would decide between two models a route could not tell apart
-    edge_fig: dict[str, Any] = {}  # the edge route's figures: its leaf against a slide, which the prism route heeds
+    edge_fig: dict[str, Any] = {}  # the edge route's figures: its leaf against a slide (the prism route heeds it),
+    #                                and the frames a drawn mask would decide between them on (`edge_decide`)
     for route in order:
         if best[0] is not None and best[1]["accepted"]:
             break
@@ -257,7 +257,6 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
         else:
             motion, fig = _measure_part_sfm(pc, ds, names, part, states, known, labelled, cfg, step, start)
         fig.setdefault("route", route)
-        decide = decide or fig.get(f"{route}_decide") or []
         edge_fig = fig if route == "edge" else edge_fig
         if route == "prism" and fig.get("accepted") and (why := contested_slide(edge_fig)):
             fig.update(accepted=False, reason=why)
@@ -282,8 +281,8 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
         best[1]["draw_frames"] = frames_to_draw(best[1], len(ds.frames), keyframe_positions(ds),
                                                 suggested_positions(ds))
         best[1]["draw_why"] = DRAW_WHY["end"]
-    elif decide and not (best[0] is not None and best[1]["accepted"]):
-        best[1].update(draw_frames=decide, draw_why=DRAW_WHY["decide"])
+    elif edge_fig.get("edge_decide") and not (best[0] is not None and best[1]["accepted"]):
+        best[1].update(draw_frames=edge_fig["edge_decide"], draw_why=DRAW_WHY["decide"])
     best[1]["attempts"] = attempts  # the reconstructions tried, whichever route's figures these are
     best[1]["routes"] = tried
     best[1].update({f"{r}_registered": v["registered"] for r, v in tried.items()})

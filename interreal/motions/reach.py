@@ -24,7 +24,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ..dataset import Articulation
-from .edge import (ANGLES, MIN_FRAME_IOU, SEARCH_SIDE, SMOOTH, end_samples, label_ends, refine, turn_degrees,
+from .edge import (ANGLES, ASK, MIN_FRAME_IOU, SEARCH_SIDE, SMOOTH, end_samples, label_ends, refine, turn_degrees,
                    viterbi)
 from .fit import JUMP, LABELS_LINE, UNLABELLED_END, Fit, articulate
 from .leaf import Leaf, Line, crest, fit_leaf, iou_curves
@@ -40,9 +40,9 @@ PAST_SHARE = 0.1          # span if more: within them the route's own states sta
 #                           mask running ahead of the part
 FIT_FRAMES = 24      # registered frames, evenly spread, the leaf's size is refined on
 MIN_BEYOND = 3       # ... and only where this many frames do (one frame past the end is a stray mask)
-ASK = 3              # frames a person is asked to draw the part on, at most, where an end is the labels' guess, ...
-AWAY = 0.1           # ... among those no route measured, unless every neighbour rests within this share of the span
-#                      of the other end (the masks lost it there, not on its way to the end)
+AWAY = 0.1           # frames to draw (`ASK` at most, where an end is the labels' guess) are among those no route
+#                      measured, unless every neighbour rests within this share of the span of the other end (the
+#                      masks lost it there, not on its way to the end)
 GAP = 6              # a frame joins the measured ones through neighbours at most this many frames apart ...
 FASTER = 2.0         # ... turning at most this many times as fast as between neighbouring measured frames
 

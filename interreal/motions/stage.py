@@ -124,8 +124,7 @@ def frames_asked(root: str | Path) -> list[dict[str, Any]]:
     out = []
     for w in (read_report(root, "motions") or {}).get("warnings", []):
         if isinstance(w, dict) and isinstance(w.get("draw"), list):
-            why = str(w.get("draw_why") or DRAW_WHY["end"])
-            out += [{"fid": str(f), "object": str(w.get("object", "")), "why": why} for f in w["draw"]]
+            out += [{"fid": str(f), "object": str(w.get("object", "")), "why": draw_why(w)} for f in w["draw"]]
     return out
 
 
@@ -355,11 +354,15 @@ def main(args) -> int:
         print(line)
     steps = (read_report(args.dataset, "motions") or {}).get("steps") or {}
     resumed = sum(bool(st.get("reused")) for st in steps.values() if isinstance(st, dict))
-    print(f"motions: {fig['measured']} of {fig['total']} objects measured"
-          + (" (reused: same inputs and settings)" if fig.get("reused") else "")
-          + (f" ({resumed} part(s) read back from the run that was stopped)" if resumed and not fig.get("reused")
-             else "")
-          + (": " + ", ".join(f"{n} ({k})" for n, k in fig["objects"].items()) if fig["objects"] else ""))
-    for name, part in (fig.get("parts") or {}).items():
-        print("  " + part_line(name, part))
+    print(measured_line(fig, " (reused: same inputs and settings)" if fig.get("reused") else
+                        f" ({resumed} part(s) read back from the run that was stopped)" if resumed else ""))
     return 0
+
+
+def measured_line(fig: dict[str, Any], note: str = "") -> str:
+    """The stage's summary from its figures: how many objects got a motion (`note` after that), each one's kind,
+    then a line per part (`part_line`); what `interreal motions` and `process` print."""
+    objs = fig.get("objects") or {}
+    return (f"motions: {fig.get('measured', 0)} of {fig.get('total', '?')} objects measured{note}"
+            + (": " + ", ".join(f"{n} ({k})" for n, k in objs.items()) if objs else "")
+            + "".join(f"\n  {part_line(n, p)}" for n, p in (fig.get("parts") or {}).items()))

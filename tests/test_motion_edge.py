@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from edge_scenes import KEYS, N, TALL, capture, off_deg
 
-from interreal.motions.edge import (MAX_LINE_PX, SEARCH_SIDE, anchored_path, hinge_lines, key_cost, measure_edge,
-                                    segments, smooth_path, triangulate)
+from interreal.motions.edge import (MAX_LINE_PX, SEARCH_SIDE, hinge_lines, key_cost, measure_edge, segments,
+                                    triangulate)
+from interreal.motions.path import anchored_path, smooth_path
 from interreal.motions import leaf as leaf_module
 from interreal.motions.leaf import Leaf, Line, crest, iou_curves, refine_leaf
 from interreal.motions.silhouette import Silhouettes, front_corners, views_of

@@ -67,3 +67,33 @@ def test_frames_the_masks_stage_does_not_trust_are_left_out():
     assert motion is not None and fig["accepted"], fig
     assert off_deg(motion.axis, [0.0, 0.0, 1.0]) < 2.0 and abs(np.degrees(motion.range) - 80) < 4
     assert not {f for f, _ in fig["frame_states"]} & set(range(13, 21))  # no state read from a mask it distrusts
+
+
+@pytest.mark.parametrize("drawn_keep", [True, False])
+def test_a_leaf_kept_on_one_count_must_be_kept_on_the_keyframes_it_moved_in(monkeypatch, drawn_keep):
+    """Where the leaf beats the slide of its front on one count only over the propagated frames it turned in, the
+    keyframes among them (exact masks) judge again: kept there, the hinge is used with the frames that would confirm
+    it named (`edge_confirm`); lost there (a drawer's leaf traced its propagated outlines better and lost its drawn
+    ones), refused by name with the frames that decide (`edge_decide`)."""
+    from interreal.motions import edge
+
+    calls = []
+    real = edge.rival_figures
+
+    def rigged(sil, out, leaf, size, shown, phi, rest, frames):
+        calls.append(list(frames))
+        some = real(sil, out, leaf, size, shown, phi, rest, frames)[4]
+        if len(calls) == 1:
+            return 2.7, 2.6, 0.94, 0.78, some  # the propagated frames: overlap won, outline tied
+        return (1.0, 3.0, 0.95, 0.80, some) if drawn_keep else (1.7, 3.7, 0.60, 0.90, some)
+
+    monkeypatch.setattr(edge, "rival_figures", rigged)
+    ds, truth, st, kn, labelled, _ = capture("hinge")
+    motion, fig = measure_edge(ds, 0, st, kn, labelled, KEYS, min_pixels=50)
+    assert len(calls) == 2 and set(calls[1]) <= set(KEYS) and calls[1], calls
+    if drawn_keep:
+        assert fig["accepted"] and motion.kind == "hinge", fig
+        assert fig["edge_confirm"] and not set(fig["edge_confirm"]) & set(KEYS), fig
+    else:
+        assert motion is None and "the keyframes it moved in" in fig["edge_reason"], fig
+        assert fig["edge_decide"] and "edge_confirm" not in fig, fig

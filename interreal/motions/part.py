@@ -43,7 +43,9 @@ PNP_LONG_SIDE = 800  # the PnP route reads the images at most this large
 DRAW_WHY = {  # why a person is asked to draw a part's mask on some frames (`draw_frames`), in the warning's words
     "end": "no route followed it to this end of its motion, so only the labels' guess scales it there",
     "decide": "where it moves a slide of its front and a leaf turning on its edge explain its masks alike: a drawn "
-              "mask there decides"}
+              "mask there decides",
+    "confirm": "where it moves a leaf turning on its edge explains its masks better than a slide of its front, but "
+               "not on every count: a drawn mask there confirms it"}
 RESULT_FILE = "measured.json"  # DS/motions/object_<k>/: the part's finished measurement (`save_result`)
 
 
@@ -231,7 +233,8 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
     attempts = 0
     views: Views | None = None  # the part's masks, cameras and occluders, read once for the pose-free routes
     edge_fig: dict[str, Any] = {}  # the edge route's figures: its leaf against a slide (the prism route heeds it),
-    #                                and the frames a drawn mask would decide between them on (`edge_decide`)
+    #                                and the frames a drawn mask would decide between them on (`edge_decide`),
+    #                                or confirm its leaf on (`edge_confirm`)
     for route in order:
         if best[0] is not None and best[1]["accepted"]:
             break
@@ -283,6 +286,8 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
         best[1]["draw_why"] = DRAW_WHY["end"]
     elif edge_fig.get("edge_decide") and not (best[0] is not None and best[1]["accepted"]):
         best[1].update(draw_frames=edge_fig["edge_decide"], draw_why=DRAW_WHY["decide"])
+    elif edge_fig.get("edge_confirm") and best[1] is edge_fig and best[1]["accepted"]:
+        best[1].update(draw_frames=edge_fig["edge_confirm"], draw_why=DRAW_WHY["confirm"])
     best[1]["attempts"] = attempts  # the reconstructions tried, whichever route's figures these are
     best[1]["routes"] = tried
     best[1].update({f"{r}_registered": v["registered"] for r, v in tried.items()})

@@ -30,6 +30,7 @@ from ..dataset import Articulation
 from . import edge
 from .fit import Fit
 from .leaf import Leaf, Line, fit_leaf, iou_curves
+from .path import anchored_path, refine
 from .silhouette import Silhouettes, Views
 
 REACH = np.linspace(0.0, 1.5, 61)  # pulls searched, in widths of the front
@@ -150,8 +151,8 @@ def pull_path(curves: np.ndarray, width: float, still: np.ndarray, ends: list[np
     """Each frame's pull (world units) by dynamic programming over `curves` (F, len(REACH)), refined by a parabola."""
     steps = REACH * width
     jump = SMOOTH * np.abs(REACH[:, None] - REACH[None, :])
-    path = edge.anchored_path(curves, steps, still, ends, jump=jump)
-    return np.array([edge.refine(curves[f], j, steps) if 0 < j < len(REACH) - 1 else float(steps[j])
+    path = anchored_path(curves, steps, still, ends, jump=jump)
+    return np.array([refine(curves[f], j, steps) if 0 < j < len(REACH) - 1 else float(steps[j])
                      for f, j in enumerate(path)])
 
 
@@ -161,7 +162,7 @@ def turning_leaf(sil: Silhouettes, leaf: Leaf, size: np.ndarray, shown: list[int
     labelled at one end at one angle)."""
     angles = np.linspace(-np.pi, np.pi, edge.ANGLES // 2, endpoint=False)
     turns = iou_curves(sil, leaf, size, shown, angles)
-    path = edge.anchored_path(turns * weight, angles, still, ends)
+    path = anchored_path(turns * weight, angles, still, ends)
     return turns[np.arange(len(shown)), path]
 
 

@@ -24,8 +24,8 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ..dataset import Articulation
-from .edge import (ANGLES, ASK, MIN_FRAME_IOU, SEARCH_SIDE, SMOOTH, end_samples, label_ends, refine, turn_degrees,
-                   viterbi)
+from .edge import ANGLES, ASK, MIN_FRAME_IOU, SEARCH_SIDE, end_samples, label_ends
+from .path import SMOOTH, refine, turn_degrees, viterbi
 from .fit import JUMP, LABELS_LINE, UNLABELLED_END, Fit, articulate
 from .leaf import Leaf, Line, crest, fit_leaf, iou_curves
 from .silhouette import Silhouettes, Views

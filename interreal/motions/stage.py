@@ -96,6 +96,14 @@ def ends_warnings(name: str, fig: dict[str, Any], fids: list[str] | None = None)
     return out
 
 
+def contested_text(name: str, measured_by: str, fig: dict[str, Any], fids: list[str]) -> str:
+    """The warning for a hinge used although a slide of the part's front explains its masks nearly as well."""
+    return (f"'{name}': the hinge measured by {measured_by} is used, but a slide of its front explains the masks of "
+            f"the frames it turned in nearly as well (outline {fig.get('edge_outline_px')} px against "
+            f"{fig.get('edge_slide_outline_px')}, overlap {fig.get('edge_hinge_iou')} against "
+            f"{fig.get('edge_slide_iou')}): {draw_ask(fig, fids)[0]}")
+
+
 def draw_ask(fig: dict[str, Any], fids: list[str] | None) -> tuple[str, list[str]]:
     """(words, frame ids) asking a person to draw the part on `fig`'s `draw_frames` (where an end of its motion is
     the labels' guess and the masks lost it), or ('', [])."""
@@ -297,6 +305,9 @@ def estimate_motions(ds_path: str | Path, force: bool = False, **opts: Any) -> d
                 for text, cause in ends_warnings(name, fig, fids):
                     rep.warn(text, cause=cause, object=name,
                              **(draw_fields(fig, fids) if cause == "ends-from-labels" else {}))
+                if fig.get("draw_why") == DRAW_WHY["confirm"]:
+                    rep.warn(contested_text(name, measured_by, fig, fids), cause="motion-contested", object=name,
+                             **draw_fields(fig, fids))
                 if fig["flagged_labels"]:
                     rep.warn(f"'{name}': {len(fig['flagged_labels'])} of {len(fig['label_check'])} labels disagree "
                              f"with the {motion.kind} measured by {measured_by}, which is used"

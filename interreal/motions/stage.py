@@ -99,8 +99,8 @@ def ends_warnings(name: str, fig: dict[str, Any], fids: list[str] | None = None)
 def contested_text(name: str, measured_by: str, fig: dict[str, Any], fids: list[str]) -> str:
     """The warning for a hinge used although a slide of the part's front explains its masks nearly as well."""
     return (f"'{name}': the hinge measured by {measured_by} is used, but a slide of its front explains the masks of "
-            f"the frames it turned in nearly as well (outline {fig.get('edge_outline_px')} px against "
-            f"{fig.get('edge_slide_outline_px')}, overlap {fig.get('edge_hinge_iou')} against "
+            f"the frames it turned in nearly as well (the leaf's outline {fig.get('edge_outline_px')} px from theirs "
+            f"against the slide's {fig.get('edge_slide_outline_px')}, its overlap {fig.get('edge_hinge_iou')} against "
             f"{fig.get('edge_slide_iou')}): {draw_ask(fig, fids)[0]}")
 
 

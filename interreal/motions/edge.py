@@ -365,6 +365,13 @@ def rival_figures(sil: Silhouettes, out: Outlines, leaf: Leaf, size: np.ndarray,
     return (float(np.median(hinge_px)) if hinge_px else TRUNC_PX), slide_px, hinge_iou, slide_iou, some
 
 
+def rival_words(fig: dict[str, Any]) -> str:
+    """The edge route's leaf against the slide of its front, from its figures (`judge`), in a warning's words."""
+    return (f"the leaf's outline {fig.get('edge_outline_px')} px from theirs against the slide's "
+            f"{fig.get('edge_slide_outline_px')}, its overlap {fig.get('edge_hinge_iou')} against "
+            f"{fig.get('edge_slide_iou')}")
+
+
 def leaf_beats_slide(hinge_px: float, slide_px: float, hinge_iou: float, slide_iou: float) -> tuple[bool, bool]:
     """(kept, on both counts): the leaf against a slide of its front, on the median outline distance (px) and the
     mean overlap of the frames it turned in, each won or lost by its margin (`OUTLINE_RATIO`, `SLIDE_MARGIN`). It

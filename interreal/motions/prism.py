@@ -236,10 +236,8 @@ def contested_slide(edge_fig: dict[str, Any]) -> str | None:
     with three frames of it drawn open was made a drawer 89 deg off so (simulated, `--hard` seed 6)."""
     if not edge_fig.get("edge_contested"):
         return None
-    return (f"the edge route's leaf explains the frames it turned in better than a slide of its front (outline "
-            f"{edge_fig.get('edge_outline_px')} px against {edge_fig.get('edge_slide_outline_px')}, overlap "
-            f"{edge_fig.get('edge_hinge_iou')} against {edge_fig.get('edge_slide_iou')}), if not by its margins: "
-            f"a door or a drawer, the masks do not tell")
+    return (f"the edge route's leaf explains the frames it turned in better than a slide of its front "
+            f"({edge.rival_words(edge_fig)}), if not by its margins: a door or a drawer, the masks do not tell")
 
 
 def measure_prism(ds, obj: int, states: np.ndarray, known: np.ndarray, labelled: np.ndarray, keys: list[int],

@@ -47,6 +47,7 @@ from ..errors import InputError, StageError
 from ..options import add_flags, config_from, values_from_args
 from ..report import StageReport, finished_with, fingerprint, read_report, warning_lines
 from ..sfm import colmap
+from .edge import rival_words
 from .fit import FLAG_TOL, LABELS_LINE, UNLABELLED_END, PartViews, fit_motion
 from .part import (DRAW_WHY, ROUTES, MotionConfig, ObjectResult, measure_object, measure_object_at, measure_part,
                    part_dir, saved_result)
@@ -99,9 +100,7 @@ def ends_warnings(name: str, fig: dict[str, Any], fids: list[str] | None = None)
 def contested_text(name: str, measured_by: str, fig: dict[str, Any], fids: list[str]) -> str:
     """The warning for a hinge used although a slide of the part's front explains its masks nearly as well."""
     return (f"'{name}': the hinge measured by {measured_by} is used, but a slide of its front explains the masks of "
-            f"the frames it turned in nearly as well (the leaf's outline {fig.get('edge_outline_px')} px from theirs "
-            f"against the slide's {fig.get('edge_slide_outline_px')}, its overlap {fig.get('edge_hinge_iou')} against "
-            f"{fig.get('edge_slide_iou')}): {draw_ask(fig, fids)[0]}")
+            f"the frames it turned in nearly as well ({rival_words(fig)}): {draw_ask(fig, fids)[0]}")
 
 
 def draw_ask(fig: dict[str, Any], fids: list[str] | None) -> tuple[str, list[str]]:

@@ -23,6 +23,7 @@ from interreal.sfm import (
     estimate_up,
     orientation_transform,
 )
+from interreal.sfm.geometry import level_up
 
 
 # ------------------------------------------------------------------------------------------------ a simulated capture
@@ -81,15 +82,16 @@ def test_umeyama_recovers_a_similarity():
     assert s == pytest.approx(2.5) and np.allclose(R2, R) and np.allclose(t, [1, -2, 3])
 
 
-def _handheld_poses(n: int, up_world: np.ndarray, pitch_deg: float, seed: int = 0) -> np.ndarray:
-    """OpenCV c2w of a phone walked along an arc: x axes horizontal (+-2 deg roll), all pitched down alike."""
+def _handheld_poses(n: int, up_world: np.ndarray, pitch_deg: float, seed: int = 0,
+                    roll_deg: float = 2.0) -> np.ndarray:
+    """OpenCV c2w of a phone walked along an arc: x axes horizontal (+-`roll_deg` roll), all pitched down alike."""
     rng = np.random.default_rng(seed)
     to_world = _rot_between(np.array([0.0, 0, 1]), up_world)  # frame with z = up
     out = []
     for k in range(n):
         yaw = np.radians(k * 60.0 / n)
         fwd = np.array([np.cos(yaw), np.sin(yaw), 0.0])
-        pitch, roll = np.radians(-pitch_deg), np.radians(rng.normal(0, 2))
+        pitch, roll = np.radians(-pitch_deg), np.radians(rng.normal(0, roll_deg))
         f = np.cos(pitch) * fwd + np.sin(pitch) * np.array([0, 0, 1.0])
         x = np.cross(f, [0, 0, 1.0])
         x /= np.linalg.norm(x)
@@ -110,6 +112,16 @@ def test_vertical_up_is_unbiased_by_pitch_where_mean_up_is_not():
     ang = lambda a: np.degrees(np.arccos(np.clip(np.dot(a, up), -1, 1)))  # noqa: E731
     assert ang(estimate_up(c2w, "vertical")) < 1.5
     assert ang(estimate_up(c2w, "up")) > 15  # nerfstudio's default is off by the pitch
+
+
+def test_level_up_is_gravity_only_where_the_cameras_tell_it():
+    up = np.array([0.2, -0.9, 0.3])
+    up /= np.linalg.norm(up)
+    ang = lambda a: np.degrees(np.arccos(np.clip(np.dot(a, up), -1, 1)))  # noqa: E731
+    assert ang(level_up(_handheld_poses(30, up, pitch_deg=25))) < 1.5
+    assert level_up(_handheld_poses(30, up, pitch_deg=25, roll_deg=30)) is None  # a camera rolled about freely
+    still = np.repeat(_handheld_poses(1, up, pitch_deg=10), 20, axis=0)  # it never turned: only its pitched mean up
+    assert ang(estimate_up(still, "vertical")) > 5 and level_up(still) is None
 
 
 def test_orientation_transform_centres_scales_and_puts_up_on_z():

@@ -8,13 +8,15 @@ hinge candidates. So:
    best covers the masks (`leaf.fit_leaf`), at the angle most frames agree with (a front does not turn), then the
    plane give or take 10 deg, which side it comes out on and how far in front of or behind the line it lies, by
    the overlap of each frame's best pull; each line's front then has its size, angle and shift refined (the
-   leaf's size was fitted to a turning leaf, which an open drawer's top and sides bend);
+   leaf's size was fitted to a turning leaf, which an open drawer's top and sides bend). Its plane is what the
+   masks pin least (a pull's top and sides bend as a tilted plane's would: fronts 3-30 deg off on simulated plain
+   drawers even with exact masks), so where the cameras tell up the best front is then held level, as drawers
+   slide, and refined so (`refine_level`: 0.2-1 deg with exact masks);
 2. each frame's pull by dynamic programming over the frames in time order (a drawer moves smoothly; the keyframes,
    a person's masks, count `edge.KEY_WEIGHT` frames), the frames labelled at one end sharing one pull;
 3. `judge`: the keyframes explained, and the slide explains the frames it moved in better than a leaf turning on
    one of those lines does (a door is the edge route's), so a door whose masks tie is not made a drawer.
-Its limits: the front's plane is what it gets least right (3-13 deg off on simulated plain drawers), and where the
-masks cannot tell a pulled drawer from a door turned a little, it refuses (docs/measurements.md, 2026-12-05).
+Its limit: where the masks cannot tell a pulled drawer from a door turned a little, it refuses.
 The pulls are the displacement `fit.articulate` reads: the geometry measures, the labels only orient.
 """
 
@@ -25,8 +27,10 @@ from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize
+from scipy.spatial.transform import Rotation
 
 from ..dataset import Articulation
+from ..sfm.geometry import level_up
 from . import edge
 from .fit import Fit
 from .leaf import Leaf, Line, fit_leaf, iou_curves
@@ -40,6 +44,7 @@ TILT_DEG = (-10.0, 0.0, 10.0)      # the front's plane about the line, around th
 SHIFTS = np.linspace(-1 / 3, 1 / 3, 5)  # ... and in front of or behind it, in widths
 SAMPLE = 24                        # frames the front is chosen on (spread over the video)
 REFINE_STEPS = 80                  # Nelder-Mead steps refining each line's front
+LEVEL_STEPS = 300                  # ... and the best front once levelled (7 parameters)
 
 
 @dataclass
@@ -121,6 +126,52 @@ def resting_angle(sil: Silhouettes, leaf: Leaf, size: np.ndarray, frames: list[i
     return float(angles[int(np.argmax(iou_curves(sil, leaf, size, some, angles).sum(0)))])
 
 
+def gravity(views: Views) -> np.ndarray | None:
+    """World up from the cameras (`sfm.geometry.level_up`), or None where they do not tell it."""
+    return level_up(np.linalg.inv(views.w2c))
+
+
+def _turned(corners: np.ndarray, centre: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    return (corners - centre) @ rot.T + centre
+
+
+def level_front(front: Front, up: np.ndarray) -> Front:
+    """`front` turned about its centre by the least rotation that makes its normal level: a drawer slides level."""
+    flat = front.normal - (front.normal @ up) * up
+    if np.linalg.norm(flat) < 1e-6:  # a front facing straight up or down: no level pull near it
+        return front
+    flat /= np.linalg.norm(flat)
+    axis = np.cross(front.normal, flat)
+    angle = np.arccos(np.clip(front.normal @ flat, -1.0, 1.0))
+    turn = Rotation.from_rotvec(axis / max(np.linalg.norm(axis), 1e-12) * angle)
+    return Front(_turned(front.corners, front.centre, turn.as_matrix()), flat, front.width)
+
+
+def levelled(front: Front, up: np.ndarray, x: np.ndarray) -> Front:
+    """The level `front` of parameters x = (turn about `up`, roll about its normal, shift (3, in widths), log scales
+    of its two edges): its normal stays level."""
+    e1 = (front.corners[1] - front.corners[0]) * np.exp(x[5])
+    e2 = (front.corners[3] - front.corners[0]) * np.exp(x[6])
+    base = front.centre - 0.5 * (e1 + e2)
+    corners = np.stack([base, base + e1, base + e1 + e2, base + e2])
+    rot = Rotation.from_rotvec(up * x[0]).as_matrix() @ Rotation.from_rotvec(front.normal * x[1]).as_matrix()
+    width = front.width * float(np.linalg.norm(e2) / max(np.linalg.norm(front.corners[3] - front.corners[0]), 1e-12))
+    return Front(_turned(corners, front.centre, rot) + x[2:5] * front.width, rot @ front.normal, width)
+
+
+def refine_level(sil: Silhouettes, front: Front, up: np.ndarray, groups: list[list[int]]) -> tuple[Front, float]:
+    """The level front (`level_front`) refined by `levelled`'s parameters, and its score (`front_score`). Its
+    plane's tilt is what the masks pin least (its pull's sides bend as a tilted plane would); held level, its turn
+    about up is pinned (simulated plain drawers: 0.3-3 deg off where the free front was 3-82)."""
+    start = level_front(front, up)
+    steps = np.diag([np.radians(5.0), np.radians(3.0), 0.1, 0.1, 0.1, 0.1, 0.1])
+    res = minimize(lambda x: -front_score(sil, levelled(start, up, x), groups, REACH[::2]), np.zeros(7),
+                   method="Nelder-Mead", options={"xatol": 1e-3, "fatol": 1e-4, "maxiter": LEVEL_STEPS,
+                                                  "initial_simplex": np.vstack([np.zeros(7), steps])})
+    out = levelled(start, up, res.x)
+    return out, front_score(sil, out, groups)
+
+
 def find_front(views: Views, frames: list[int], keys: list[int], coarse: Silhouettes, ends: list[list[int]]
                ) -> tuple[Front | None, list[tuple[Leaf, np.ndarray]], dict[str, Any]]:
     """The best front over the best static lines of the keyframes' outlines (`edge.hinge_lines`), or None and why;
@@ -144,6 +195,12 @@ def find_front(views: Views, frames: list[int], keys: list[int], coarse: Silhoue
     front, score = max((refine_front(coarse, leaf, g[1], g[2], groups) for (leaf, _), g in zip(leaves, grids)),
                        key=lambda r: r[1])  # every line's: the grid's order is not the refined one's (seed 3)
     fig["prism_front_iou"] = round(score, 3)
+    up = gravity(views)
+    if up is not None:  # a drawer slides level: the level front kept unless a tilted one fits clearly better
+        level, level_score = refine_level(coarse, front, up, groups)
+        fig["prism_level_iou"] = round(level_score, 3)
+        if level_score >= score - edge.SLIDE_MARGIN:
+            front, fig["prism_levelled"] = level, True
     return front, leaves, fig
 
 

@@ -23,6 +23,9 @@ def _rot_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + vx + vx @ vx / (1 + c)
 
 
+PAN = 0.17  # the x axes' second singular value over sqrt(n) under which they span one direction: a pure pan
+
+
 def estimate_up(c2w_cv: np.ndarray, method: str = "vertical") -> np.ndarray:
     """World 'up' from OpenCV camera-to-world poses.
 
@@ -36,11 +39,23 @@ def estimate_up(c2w_cv: np.ndarray, method: str = "vertical") -> np.ndarray:
         return mean_up
     x = c2w_cv[:, :3, 0]
     _, s, vt = np.linalg.svd(x, full_matrices=False)
-    if s[1] > 0.17 * np.sqrt(len(x)):
+    if s[1] > PAN * np.sqrt(len(x)):
         up = vt[2]
         return up if np.dot(up, mean_up) > 0 else -up
     up = mean_up - vt[0] * np.dot(mean_up, vt[0])
     return up / np.linalg.norm(up)
+
+
+def level_up(c2w_cv: np.ndarray, max_roll_deg: float = 10.0) -> np.ndarray | None:
+    """World up as `estimate_up`'s "vertical" finds it, or None where it is not to be trusted as gravity: the
+    cameras' x axes span one direction (a pure pan: up is then their mean up, tilted by their pitch) or stray from
+    one plane by more than `max_roll_deg` (rms: a camera rolled about freely, or a video turned on its side)."""
+    x = c2w_cv[:, :3, 0]
+    s = np.linalg.svd(x, compute_uv=False)
+    n = np.sqrt(len(x))
+    if len(x) < 3 or s[1] <= PAN * n or s[2] > np.sin(np.radians(max_roll_deg)) * n:
+        return None
+    return estimate_up(c2w_cv, "vertical")
 
 
 def orientation_transform(c2w_cv: np.ndarray, method: str, center_scale: bool) -> np.ndarray:

@@ -68,43 +68,6 @@ def test_a_slide_is_not_used_where_the_edge_routes_leaf_explained_the_masks_bett
         assert "draw_frames" not in fig
 
 
-def test_a_slide_its_masks_refuse_asks_for_frames_where_it_moved(tmp_path, monkeypatch):
-    """Where the prism route found a drawer's front but its masks refuse the slide (an arm across it, propagated
-    masks that stray where it moves), the frames a drawn mask decides on are asked for (`prism_decide`), after the
-    edge route's own; an accepted motion asks for none."""
-    from conftest import make_tiny_dataset
-
-    from interreal.dataset import load_dataset
-    from interreal.motions import part as motions
-
-    ds = load_dataset(make_tiny_dataset(tmp_path / "ds", n_frames=12, size=(64, 48), n_objects=1))
-    monkeypatch.setattr(motions, "views_of", lambda ds_, obj: None)
-    st, kn = np.zeros(12), np.zeros(12, bool)
-    for edge_decide, want in (([], [3, 5, 7]), ([2, 4], [2, 4])):
-        routes = {"edge": ("static edge", lambda *a, d=edge_decide: (None, {"edge_reason": "...", "edge_decide": d})),
-                  "prism": ("front pulled out", lambda *a: (None, {"prism_reason": "... overlaps the masks of the "
-                                                                             "frames it moved in by 0.65 (need 0.7)",
-                                                                             "prism_decide": [3, 5, 7]}))}
-        monkeypatch.setattr(motions, "OUTLINE_ROUTES", routes)
-        motion, fig = motions.measure_part(None, ds, [], tmp_path / "part", st, kn, motions.MotionConfig(), obj=0,
-                                           routes=("edge", "prism"))
-        assert motion is None and fig["draw_frames"] == want, fig
-        assert fig["draw_why"] == motions.DRAW_WHY["decide" if edge_decide else "slide"]
-
-
-def test_the_prism_judge_names_the_frames_that_decide_only_where_the_drawer_both_rests_and_moves():
-    from interreal.motions.prism import judge
-
-    shown, keys = list(range(20)), [0, 19]
-    pulls = np.r_[np.zeros(8), np.full(8, 0.3), np.zeros(4)]
-    fig = {}
-    assert "0.60" in judge(fig, shown, pulls, np.where(pulls > 0, 0.6, 0.95), keys, np.full(20, 0.5))
-    assert fig["prism_decide"] and set(fig["prism_decide"]) <= set(range(8, 16)), fig
-    fig = {}
-    assert "every frame" in judge(fig, shown, np.full(20, 0.3), np.full(20, 0.9), keys, np.full(20, 0.5))
-    assert "prism_decide" not in fig
-
-
 def test_the_summary_line_ends_cleanly_when_no_object_was_measured(tmp_path, monkeypatch, capsys):
     import argparse
 

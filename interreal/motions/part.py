@@ -45,9 +45,7 @@ DRAW_WHY = {  # why a person is asked to draw a part's mask on some frames (`dra
     "decide": "where it moves a slide of its front and a leaf turning on its edge explain its masks alike: a drawn "
               "mask there decides",
     "confirm": "where it moves a leaf turning on its edge explains its masks better than a slide of its front, but "
-               "not on every count: a drawn mask there confirms it",
-    "slide": "where it moves its masks are too far from a slide of its front, or from a leaf, to tell: a drawn mask "
-             "there decides"}
+               "not on every count: a drawn mask there confirms it"}
 RESULT_FILE = "measured.json"  # DS/motions/object_<k>/: the part's finished measurement (`save_result`)
 
 
@@ -237,7 +235,6 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
     edge_fig: dict[str, Any] = {}  # the edge route's figures: its leaf against a slide (the prism route heeds it),
     #                                and the frames a drawn mask would decide between them on (`edge_decide`),
     #                                or confirm its leaf on (`edge_confirm`)
-    prism_fig: dict[str, Any] = {}  # the prism route's, with the frames a drawn mask would decide on (`prism_decide`)
     for route in order:
         if best[0] is not None and best[1]["accepted"]:
             break
@@ -264,7 +261,6 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
             motion, fig = _measure_part_sfm(pc, ds, names, part, states, known, labelled, cfg, step, start)
         fig.setdefault("route", route)
         edge_fig = fig if route == "edge" else edge_fig
-        prism_fig = fig if route == "prism" else prism_fig
         if route == "prism" and fig.get("accepted") and (why := contested_slide(edge_fig)):
             fig.update(accepted=False, reason=why)
         tried[route] = {"registered": fig.get("registered", 0), "kind": None if motion is None else motion.kind,
@@ -290,8 +286,6 @@ def measure_part(pc, ds, names: list[str], part: Path, states: np.ndarray, known
         best[1]["draw_why"] = DRAW_WHY["end"]
     elif edge_fig.get("edge_decide") and not (best[0] is not None and best[1]["accepted"]):
         best[1].update(draw_frames=edge_fig["edge_decide"], draw_why=DRAW_WHY["decide"])
-    elif prism_fig.get("prism_decide") and not (best[0] is not None and best[1]["accepted"]):
-        best[1].update(draw_frames=prism_fig["prism_decide"], draw_why=DRAW_WHY["slide"])
     elif edge_fig.get("edge_confirm") and best[1] is edge_fig and best[1]["accepted"]:
         best[1].update(draw_frames=edge_fig["edge_confirm"], draw_why=DRAW_WHY["confirm"])
     best[1]["attempts"] = attempts  # the reconstructions tried, whichever route's figures these are

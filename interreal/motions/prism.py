@@ -227,9 +227,7 @@ def judge(fig: dict[str, Any], shown: list[int], pulls: np.ndarray, iou: np.ndar
           leaf_best: np.ndarray) -> str | None:
     """Why the front pulled by `pulls` (over `shown`; `iou` its overlap there) is no drawer, or None; its figures
     into `fig`. leaf_best (F,): each frame's best overlap by a leaf turning on one of the static lines, or on the
-    front's own edge (`turning_leaf`): the rival. Refused where it both rests and moves, the frames a drawn mask
-    would decide on (`prism_decide`, as `edge.deciding_frames`): a plain drawer's propagated masks stray where it
-    moves, and an arm across it cuts them."""
+    front's own edge (`turning_leaf`): the rival."""
     key = [f for f, i in enumerate(shown) if i in keys]
     key_iou = float(iou[key].mean()) if key else 0.0
     moved = pulls >= edge.MOVED * pulls.max() if pulls.max() > 0 else np.zeros(len(pulls), bool)
@@ -237,8 +235,6 @@ def judge(fig: dict[str, Any], shown: list[int], pulls: np.ndarray, iou: np.ndar
     hinge_iou = float(leaf_best[moved].mean()) if moved.any() else 0.0
     fig.update(prism_key_iou=round(key_iou, 3), prism_slide_iou=round(slide_iou, 3),
                prism_hinge_iou=round(hinge_iou, 3), prism_moved_frames=int(moved.sum()))
-    if moved.any() and not moved.all():  # where a refusal below is the masks', drawn ones where it moved decide
-        fig["prism_decide"] = edge.deciding_frames([i for i, m in zip(shown, moved) if m], keys)
     if key_iou < edge.MIN_KEY_IOU:
         return (f"a front pulled along its normal does not explain the keyframes' masks (overlap {key_iou:.2f}, need "
                 f"{edge.MIN_KEY_IOU}): no plain drawer")
@@ -280,7 +276,6 @@ def prism_motion(views: Views, frames: list[int], keys: list[int], states: np.nd
     if reason:
         fig["prism_reason"] = reason
         return None, fig
-    fig.pop("prism_decide", None)
     measured = iou >= edge.MIN_FRAME_IOU
     fig.update(prism_mean_iou=round(float(iou.mean()), 3), prism_width=round(front.width, 4))
     pos = {i: n for n, i in enumerate(shown)}

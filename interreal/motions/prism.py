@@ -30,7 +30,7 @@ from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
 from ..dataset import Articulation
-from ..sfm.geometry import level_up
+from ..sfm.geometry import _rot_between, level_up
 from . import edge
 from .fit import Fit
 from .leaf import Leaf, Line, fit_leaf, iou_curves
@@ -141,10 +141,7 @@ def level_front(front: Front, up: np.ndarray) -> Front:
     if np.linalg.norm(flat) < 1e-6:  # a front facing straight up or down: no level pull near it
         return front
     flat /= np.linalg.norm(flat)
-    axis = np.cross(front.normal, flat)
-    angle = np.arccos(np.clip(front.normal @ flat, -1.0, 1.0))
-    turn = Rotation.from_rotvec(axis / max(np.linalg.norm(axis), 1e-12) * angle)
-    return Front(_turned(front.corners, front.centre, turn.as_matrix()), flat, front.width)
+    return Front(_turned(front.corners, front.centre, _rot_between(front.normal, flat)), flat, front.width)
 
 
 def levelled(front: Front, up: np.ndarray, x: np.ndarray) -> Front:
